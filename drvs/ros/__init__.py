@@ -1,0 +1,1 @@
+"""ROS glue: message conversions, parameters and the node classes."""

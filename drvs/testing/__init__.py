@@ -1,0 +1,21 @@
+"""Test support: a private rosmaster per test, nodes as subprocesses, waits with deadlines."""
+
+from drvs.testing.harness import (
+    NodeProcess,
+    RosHarness,
+    RosMaster,
+    WaitTimeout,
+    free_port,
+    processes_of_session,
+    wait_for,
+)
+
+__all__ = [
+    'NodeProcess',
+    'RosHarness',
+    'RosMaster',
+    'WaitTimeout',
+    'free_port',
+    'processes_of_session',
+    'wait_for',
+]

@@ -1,0 +1,303 @@
+"""A rostest-style harness for pytest, without roslaunch or catkin.
+
+Each :class:`RosHarness` owns a temporary folder, a private ``rosmaster`` on a
+free port (with its own ROS_HOME and log directory there) and every node it
+started as a subprocess in its own process group. :meth:`RosHarness.close`
+stops them all: SIGINT, wait, SIGTERM, wait, SIGKILL to the group. Every
+process carries the environment variable ``DRVS_TEST_SESSION`` so that
+:func:`processes_of_session` can prove nothing was left behind.
+
+Nothing here imports rospy: the harness talks to the master over XML-RPC.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+import xmlrpc.client
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+SESSION_VARIABLE = 'DRVS_TEST_SESSION'
+CALLER_ID = '/drvs_test_harness'
+
+
+class WaitTimeout(AssertionError):
+    """A condition did not become true before its deadline."""
+
+
+
+def free_port() -> int:
+    """Return a TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(('127.0.0.1', 0))
+        return sock.getsockname()[1]
+
+
+def wait_for(condition: Callable[[], object], timeout: float, what: str, interval: float = 0.05,
+             on_timeout: Callable[[], str] | None = None):
+    """Poll ``condition`` until it returns a truthy value, which is returned.
+
+    :raises WaitTimeout: after ``timeout`` seconds, naming ``what`` and adding
+        ``on_timeout()`` (for example a node's log) to the message.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            detail = on_timeout() if on_timeout else ''
+            raise WaitTimeout(f'timed out after {timeout:.1f} s waiting for {what}' + (f'\n{detail}' if detail else ''))
+        time.sleep(interval)
+
+
+def processes_of_session(session: str) -> list[int]:
+    """PIDs of live processes whose environment carries ``DRVS_TEST_SESSION=session``."""
+    marker = f'{SESSION_VARIABLE}={session}'.encode()
+    found = []
+    for entry in os.listdir('/proc'):
+        if not entry.isdigit() or int(entry) == os.getpid():
+            continue
+        try:
+            with open(f'/proc/{entry}/environ', 'rb') as handle:
+                environ = handle.read().split(b'\0')
+            with open(f'/proc/{entry}/stat', 'rb') as handle:
+                state = handle.read().rsplit(b')', 1)[1].split()[0]
+        except OSError:
+            continue
+        if marker in environ and state != b'Z':
+            found.append(int(entry))
+    return found
+
+
+def _stop_group(process: subprocess.Popen, grace: float = 5.0) -> None:
+    """SIGINT, wait, SIGTERM, wait, SIGKILL the process group of ``process``."""
+    for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, grace), (signal.SIGKILL, grace)):
+        if process.poll() is not None:
+            break
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            process.wait(wait)
+        except subprocess.TimeoutExpired:
+            continue
+    # Children of the leader that outlived it still belong to the group.
+    try:
+        os.killpg(process.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    if process.poll() is None:
+        process.wait(grace)
+
+
+class NodeProcess:
+    """A process started by the harness, with its combined output in ``log_path``."""
+
+    def __init__(self, name: str, argv: list[str], env: Mapping[str, str], log_path: Path, cwd: Path):
+        self.name = name
+        self.argv = argv
+        self.log_path = log_path
+        self._log = open(log_path, 'wb')  # noqa: SIM115 - closed in stop()
+        self.process = subprocess.Popen(argv, env=dict(env), cwd=cwd, stdout=self._log, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def running(self) -> bool:
+        return self.process.poll() is None
+
+    def log(self, tail: int = 60) -> str:
+        """The last ``tail`` lines of the process's output."""
+        try:
+            lines = self.log_path.read_text(errors='replace').splitlines()
+        except OSError:
+            return ''
+        return '\n'.join(lines[-tail:])
+
+    def describe(self) -> str:
+        status = 'running' if self.running() else f'exited with {self.process.returncode}'
+        return f'--- {self.name} ({status}), {self.log_path} ---\n{self.log()}'
+
+    def interrupt(self, timeout: float = 10.0) -> int:
+        """Send SIGINT (Ctrl-C) only and wait for a clean exit; return the exit code."""
+        if self.running():
+            os.killpg(self.process.pid, signal.SIGINT)
+        return self.process.wait(timeout)
+
+    def stop(self) -> None:
+        _stop_group(self.process)
+        self._log.close()
+
+
+class RosMaster:
+    """A private rosmaster on a free port, reached over XML-RPC."""
+
+    def __init__(self, harness: RosHarness):
+        self.port = free_port()
+        self.uri = f'http://127.0.0.1:{self.port}/'
+        self.node = harness.spawn('rosmaster', ['rosmaster', '--core', '-p', str(self.port)], ros=False)
+        wait_for(self._answers, 20.0, f'rosmaster on port {self.port}', on_timeout=self.node.describe)
+
+    def _answers(self) -> bool:
+        if not self.node.running():
+            raise WaitTimeout(f'rosmaster exited early\n{self.node.describe()}')
+        try:
+            return self._raw_call('getPid')[0] == 1
+        except OSError:
+            return False
+
+    def _raw_call(self, method: str, *args) -> list:
+        with xmlrpc.client.ServerProxy(self.uri) as proxy:
+            return getattr(proxy, method)(CALLER_ID, *args)
+
+    def call(self, method: str, *args):
+        """Call a master API method; return its value or raise RuntimeError with its message."""
+        code, message, value = self._raw_call(method, *args)
+        if code != 1:
+            raise RuntimeError(f'master {method}{args}: {message}')
+        return value
+
+    def lookup_service(self, name: str) -> str | None:
+        code, _, uri = self._raw_call('lookupService', name)
+        return uri if code == 1 else None
+
+    def system_state(self) -> tuple[list, list, list]:
+        """(publishers, subscribers, services), each a list of [name, [nodes]]."""
+        return tuple(self.call('getSystemState'))
+
+    def subscriptions_of(self, node: str) -> list[str]:
+        """Topic names the node ``node`` subscribes to, from the master's record."""
+        return sorted(topic for topic, nodes in self.system_state()[1] if node in nodes)
+
+
+class RosHarness:
+    """Owns a temporary folder, a private master and the nodes started against it.
+
+    Use as a context manager, or call :meth:`close`; the pytest fixture ``ros``
+    in ``test/conftest.py`` does it for every test.
+    """
+
+    def __init__(self, session: str | None = None, keep: bool = False):
+        self.session = session or os.environ.get(SESSION_VARIABLE) or uuid.uuid4().hex
+        self.root = Path(tempfile.mkdtemp(prefix='drvs-test-'))
+        self.keep = keep
+        self.nodes: list[NodeProcess] = []
+        (self.root / 'ros_home').mkdir()
+        (self.root / 'log').mkdir()
+        self.master: RosMaster | None = None
+        try:
+            self.master = RosMaster(self)
+        except BaseException:
+            self.close()
+            raise
+
+    # -- environment -------------------------------------------------------------------------
+    @property
+    def env(self) -> dict[str, str]:
+        """The environment a process needs to join this harness's ROS graph."""
+        env = dict(os.environ)
+        for key in ('ROS_IP', 'ROS_NAMESPACE'):
+            env.pop(key, None)
+        env.update({
+            SESSION_VARIABLE: self.session,
+            'ROS_HOME': str(self.root / 'ros_home'),
+            'ROS_LOG_DIR': str(self.root / 'log'),
+            'ROS_HOSTNAME': '127.0.0.1',
+            'ROS_PACKAGE_PATH': str(REPO) + (':' + env['ROS_PACKAGE_PATH'] if env.get('ROS_PACKAGE_PATH') else ''),
+            'PYTHONPATH': str(REPO) + (':' + env['PYTHONPATH'] if env.get('PYTHONPATH') else ''),
+            'PYTHONUNBUFFERED': '1',
+        })
+        if self.master is not None:
+            env['ROS_MASTER_URI'] = self.master.uri
+        return env
+
+    # -- processes ---------------------------------------------------------------------------
+    def spawn(self, name: str, argv: list[str], ros: bool = True, env: Mapping[str, str] | None = None) -> NodeProcess:
+        """Start ``argv`` in its own process group with its output logged; tracked for cleanup."""
+        full_env = self.env if ros else {**self.env, 'ROS_MASTER_URI': ''}
+        full_env.update(env or {})
+        log_path = self.root / 'log' / f'{name.strip("/").replace("/", "_")}-{len(self.nodes)}.out'
+        node = NodeProcess(name, argv, full_env, log_path, REPO)
+        self.nodes.append(node)
+        return node
+
+    def start_node(self, executable: str | os.PathLike, name: str | None = None,
+                   params: Mapping[str, object] | None = None, args: Iterable[str] = (),
+                   remap: Mapping[str, str] | None = None, env: Mapping[str, str] | None = None) -> NodeProcess:
+        """Start a Python node with ROS arguments: ``__name:=``, ``_param:=value``, remappings.
+
+        ``executable`` is a path relative to the repository (``nodes/drvs_server``) or
+        absolute; it runs under this interpreter (the project's venv).
+        """
+        path = Path(executable)
+        if not path.is_absolute():
+            path = REPO / path
+        argv = [sys.executable, str(path), *args]
+        if name:
+            argv.append(f'__name:={name}')
+        for key, value in (remap or {}).items():
+            argv.append(f'{key}:={value}')
+        for key, value in (params or {}).items():
+            argv.append(f'_{key}:={_param_text(value)}')
+        return self.spawn(name or path.name, argv, env=env)
+
+    def wait_for_service(self, service: str, timeout: float = 30.0, node: NodeProcess | None = None) -> str:
+        """Wait until the master knows ``service``; return its URI.
+
+        Fails early, with the node's log, if ``node`` exits before that.
+        """
+        def ready():
+            if node is not None and not node.running():
+                raise WaitTimeout(f'{node.name} exited before providing {service}\n{node.describe()}')
+            return self.master.lookup_service(service)
+
+        return wait_for(ready, timeout, f'service {service}', on_timeout=self.describe)
+
+    def wait_for_topic(self, topic: str, timeout: float = 30.0) -> None:
+        """Wait until someone publishes ``topic``."""
+        wait_for(lambda: any(name == topic for name, _ in self.master.system_state()[0]), timeout,
+                 f'a publisher of {topic}', on_timeout=self.describe)
+
+    def describe(self) -> str:
+        """Every process's status and log tail, for failure messages."""
+        return '\n'.join(node.describe() for node in self.nodes)
+
+    def run(self, command: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+        """Run a shell command with this graph's environment (and scripts/env.sh sourced)."""
+        script = f'source {REPO}/scripts/env.sh && {command}'
+        return subprocess.run(['bash', '-c', script], env=self.env, cwd=REPO, capture_output=True, text=True,
+                              timeout=timeout, start_new_session=True)
+
+    # -- teardown ----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop every node (newest first), then the master; remove the folder unless kept."""
+        for node in reversed(self.nodes):
+            node.stop()
+        if not self.keep:
+            shutil.rmtree(self.root, ignore_errors=True)
+
+    def __enter__(self) -> RosHarness:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _param_text(value: object) -> str:
+    """Render a private parameter the way rospy parses ``_name:=value`` (YAML)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    return str(value)

@@ -1,0 +1,82 @@
+#!/usr/bin/env bash
+# One-command setup for DRVS on Debian bookworm (or a derivative).
+#
+# Installs the Debian packages the project needs, creates .venv from Debian's
+# /usr/bin/python3 with --system-site-packages, installs pybullet and the test
+# tools into it, and installs the project (which generates drvs.msg and
+# drvs.srv). Idempotent: a second run that finds everything in place does no
+# installs and finishes within seconds. Works as root or through sudo.
+set -euo pipefail
+
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$here"
+
+APT_PACKAGES=(
+  ros-core python3-rospy python3-rosservice python3-rosmsg python3-rosnode
+  python3-rostopic python3-rosgraph python3-roslib python3-rospkg
+  python3-genpy python3-genmsg
+  ros-std-msgs ros-geometry-msgs ros-sensor-msgs ros-nav-msgs
+  python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-nav-msgs
+  python3-opencv python3-numpy python3-shapely python3-yaml
+  python3-venv python3-pip python3-psutil
+)
+# The test tools and the PyPI wheels, pinned to what the project was checked with.
+PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)
+
+say() { printf 'setup: %s\n' "$*"; }
+die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
+
+missing_apt() {
+  local p
+  for p in "${APT_PACKAGES[@]}"; do
+    dpkg-query -W -f='${db:Status-Status}\n' "$p" 2>/dev/null | grep -qx installed || echo "$p"
+  done
+}
+
+missing=$(missing_apt)
+if [ -n "$missing" ]; then
+  command -v apt-get >/dev/null 2>&1 || die "apt-get not found. DRVS needs Debian bookworm (or a derivative) with these packages: $(echo $missing)"
+  if [ "$(id -u)" -eq 0 ]; then
+    SUDO=()
+  elif command -v sudo >/dev/null 2>&1; then
+    SUDO=(sudo)
+  else
+    die "installing Debian packages needs root: run as root or install sudo. Missing: $(echo $missing)"
+  fi
+  say "installing Debian packages: $(echo $missing)"
+  "${SUDO[@]}" apt-get update -q
+  # shellcheck disable=SC2086
+  DEBIAN_FRONTEND=noninteractive "${SUDO[@]}" apt-get install -y -q --no-install-recommends $missing
+fi
+
+[ -x /usr/bin/python3 ] || die "/usr/bin/python3 is missing: install Debian's python3"
+venv="$here/.venv"
+if [ ! -x "$venv/bin/python" ]; then
+  say "creating $venv from /usr/bin/python3 with --system-site-packages"
+  /usr/bin/python3 -m venv --system-site-packages "$venv"
+fi
+py="$venv/bin/python"
+"$py" -c 'import rospy, cv2, numpy, shapely, yaml' 2>/dev/null \
+  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml; delete .venv and run again"
+
+pip_missing=()
+for spec in "${PIP_PACKAGES[@]}"; do
+  name=${spec%%==*}; want=${spec#*==}
+  have=$("$py" -c "import importlib.metadata as m; print(m.version('$name'))" 2>/dev/null || true)
+  [ "$have" = "$want" ] || pip_missing+=("$spec")
+done
+if [ ${#pip_missing[@]} -gt 0 ]; then
+  say "installing from PyPI: ${pip_missing[*]}"
+  "$py" -m pip install -q --disable-pip-version-check "${pip_missing[@]}"
+fi
+
+# Install the project (editable) when it is missing or its definitions changed.
+stamp="$venv/.drvs-install-stamp"
+digest=$(cat setup.py pyproject.toml package.xml msg/*.msg srv/*.srv 2>/dev/null | sha256sum | cut -d' ' -f1)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$digest" ] \
+   || ! "$py" -c 'import drvs.msg, drvs.srv' 2>/dev/null; then
+  say "installing the drvs package (generates drvs.msg and drvs.srv)"
+  "$py" -m pip install -q --disable-pip-version-check --no-build-isolation --no-deps -e .
+  echo "$digest" > "$stamp"
+fi
+say "ready ($venv)"

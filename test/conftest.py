@@ -1,0 +1,51 @@
+"""Fixtures shared by the whole suite.
+
+``ros``: a :class:`drvs.testing.RosHarness` per test — a private rosmaster on a
+free port with its own ROS_HOME and log folder; every node started through it
+is stopped at teardown, also when the test fails or times out.
+"""
+
+import os
+import signal
+import uuid
+
+import pytest
+
+from drvs.testing import RosHarness, processes_of_session
+from drvs.testing.harness import SESSION_VARIABLE
+
+
+def pytest_configure(config):
+    # Every process the suite starts carries this marker, so the end-of-session
+    # check (and test_harness) can find anything left behind.
+    os.environ.setdefault(SESSION_VARIABLE, uuid.uuid4().hex)
+
+
+@pytest.fixture
+def ros():
+    harness = RosHarness()
+    try:
+        yield harness
+    finally:
+        harness.close()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Fail the run if any process started by the suite outlived it (then kill it)."""
+    left = processes_of_session(os.environ[SESSION_VARIABLE])
+    if not left:
+        return
+    reporter = session.config.pluginmanager.get_plugin('terminalreporter')
+    for pid in left:
+        try:
+            with open(f'/proc/{pid}/cmdline', 'rb') as handle:
+                command = handle.read().replace(b'\0', b' ').decode(errors='replace')
+        except OSError:
+            command = '?'
+        if reporter:
+            reporter.write_line(f'LEFT BEHIND by the test suite: pid {pid}: {command}', red=True)
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    session.exitstatus = pytest.ExitCode.TESTS_FAILED
