@@ -25,6 +25,7 @@ def _python_with_genpy():
     """Return an interpreter that can import genpy (Debian's, normally)."""
     try:
         import genpy  # noqa: F401
+
         return sys.executable
     except ImportError:
         return '/usr/bin/python3'
@@ -36,15 +37,19 @@ def generate_interfaces():
     for dep in DEPENDENCIES:
         path = os.path.join(SHARE, dep, 'msg')
         if not os.path.isdir(path):
-            sys.exit(f'drvs: {path} not found: install the Debian package ros-{dep.replace("_", "-")}'
-                     ' (scripts/setup.sh does it)')
+            sys.exit(
+                f'drvs: {path} not found: install the Debian package ros-{dep.replace("_", "-")}'
+                ' (scripts/setup.sh does it)'
+            )
         includes += ['-I', f'{dep}:{path}']
     python = _python_with_genpy()
     for kind, script in (('msg', 'genmsg_py.py'), ('srv', 'gensrv_py.py')):
         tool = os.path.join(GENPY, script)
         if not os.path.isfile(tool):
-            sys.exit(f'drvs: {tool} not found: install the Debian package python3-genpy'
-                     ' (scripts/setup.sh does it)')
+            sys.exit(
+                f'drvs: {tool} not found: install the Debian package python3-genpy'
+                ' (scripts/setup.sh does it)'
+            )
         out = os.path.join(HERE, 'drvs', kind)
         shutil.rmtree(out, ignore_errors=True)  # a removed definition leaves nothing stale
         sources = sorted(glob.glob(os.path.join(HERE, kind, f'*.{kind}')))

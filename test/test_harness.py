@@ -34,7 +34,8 @@ def test_wait_for_gives_up_at_its_deadline():
 def test_nothing_is_left_behind_when_tests_fail_or_time_out(tmp_path):
     """Run a small suite whose tests fail and hang; afterwards no process of it may remain."""
     suite = tmp_path / 'test_inner.py'
-    suite.write_text(textwrap.dedent(f'''
+    suite.write_text(
+        textwrap.dedent(f"""
         import sys, time
         import pytest
 
@@ -54,13 +55,31 @@ def test_nothing_is_left_behind_when_tests_fail_or_time_out(tmp_path):
         def test_hangs(ros):
             start(ros)
             time.sleep(600)
-    '''))
+    """)
+    )
     (tmp_path / 'conftest.py').write_text((REPO / 'test/conftest.py').read_text())
     session = uuid.uuid4().hex
     env = {**__import__('os').environ, SESSION_VARIABLE: session}
-    result = subprocess.run([sys.executable, '-m', 'pytest', '-q', '-p', 'no:cacheprovider', '-o', 'timeout=60',
-                             '--rootdir', str(tmp_path), str(suite)], env=env, capture_output=True, text=True,
-                            timeout=180, cwd=tmp_path)
+    result = subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'pytest',
+            '-q',
+            '-p',
+            'no:cacheprovider',
+            '-o',
+            'timeout=60',
+            '--rootdir',
+            str(tmp_path),
+            str(suite),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=tmp_path,
+    )
     assert '2 failed' in result.stdout, result.stdout + result.stderr
     assert 'LEFT BEHIND' not in result.stdout
     assert processes_of_session(session) == []

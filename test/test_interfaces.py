@@ -27,21 +27,44 @@ def round_trip(message):
 
 
 def square(x, y, side=0.5):
-    return Polygon(points=[Point32(x, y, 0), Point32(x + side, y, 0), Point32(x + side, y + side, 0),
-                           Point32(x, y + side, 0)])
+    return Polygon(
+        points=[
+            Point32(x, y, 0),
+            Point32(x + side, y, 0),
+            Point32(x + side, y + side, 0),
+            Point32(x, y + side, 0),
+        ]
+    )
 
 
-@pytest.mark.parametrize('cls, slots, types', [
-    (BoundingBox, ['min_x', 'min_y', 'max_x', 'max_y'], ['float64'] * 4),
-    (DetectedObject, ['boundary', 'bounding_box'], ['geometry_msgs/Polygon', 'drvs/BoundingBox']),
-    (DetectObjectBoundaryRequest, ['algorithm', 'region_of_interest', 'callback_service', 'request_id'],
-     ['string', 'drvs/BoundingBox', 'string', 'string']),
-    (DetectObjectBoundaryResponse, ['accepted', 'message', 'vision_systems'], ['bool', 'string', 'uint32']),
-    (CallbackCoordinatesRequest, ['algorithm', 'request_id', 'vision_system', 'stamp', 'objects'],
-     ['string', 'string', 'string', 'time', 'drvs/DetectedObject[]']),
-    (RegisterVisionServiceRequest, ['service_name', 'field_of_view'], ['string', 'geometry_msgs/Polygon']),
-    (RegisterVisionServiceResponse, ['accepted', 'message'], ['bool', 'string']),
-])
+@pytest.mark.parametrize(
+    'cls, slots, types',
+    [
+        (BoundingBox, ['min_x', 'min_y', 'max_x', 'max_y'], ['float64'] * 4),
+        (DetectedObject, ['boundary', 'bounding_box'], ['geometry_msgs/Polygon', 'drvs/BoundingBox']),
+        (
+            DetectObjectBoundaryRequest,
+            ['algorithm', 'region_of_interest', 'callback_service', 'request_id'],
+            ['string', 'drvs/BoundingBox', 'string', 'string'],
+        ),
+        (
+            DetectObjectBoundaryResponse,
+            ['accepted', 'message', 'vision_systems'],
+            ['bool', 'string', 'uint32'],
+        ),
+        (
+            CallbackCoordinatesRequest,
+            ['algorithm', 'request_id', 'vision_system', 'stamp', 'objects'],
+            ['string', 'string', 'string', 'time', 'drvs/DetectedObject[]'],
+        ),
+        (
+            RegisterVisionServiceRequest,
+            ['service_name', 'field_of_view'],
+            ['string', 'geometry_msgs/Polygon'],
+        ),
+        (RegisterVisionServiceResponse, ['accepted', 'message'], ['bool', 'string']),
+    ],
+)
 def test_fields_match_the_contract(cls, slots, types):
     assert cls.__slots__ == slots
     assert cls._slot_types == types
@@ -57,7 +80,9 @@ def test_detect_object_boundary_round_trips():
     request = DetectObjectBoundaryRequest(
         algorithm='colour:0,0,150,80,80,255',
         region_of_interest=BoundingBox(0.5, -1.25, 7.0, 5.5),
-        callback_service='/robot/callback_coordinates', request_id='station-7')
+        callback_service='/robot/callback_coordinates',
+        request_id='station-7',
+    )
     assert round_trip(request) == request
     response = DetectObjectBoundaryResponse(accepted=True, message='', vision_systems=2)
     assert round_trip(response) == response
@@ -66,19 +91,28 @@ def test_detect_object_boundary_round_trips():
 def test_callback_coordinates_round_trips_with_objects():
     import genpy
 
-    objects = [DetectedObject(boundary=square(1.0, 2.0), bounding_box=BoundingBox(1.0, 2.0, 1.5, 2.5)),
-               DetectedObject(boundary=square(4.0, 0.0, 0.25), bounding_box=BoundingBox(4.0, 0.0, 4.25, 0.25))]
-    request = CallbackCoordinatesRequest(algorithm='colour:0,150,0,80,255,80', request_id='self-1',
-                                         vision_system='/vs2/detect_object_boundary',
-                                         stamp=genpy.Time(12, 345), objects=objects)
+    objects = [
+        DetectedObject(boundary=square(1.0, 2.0), bounding_box=BoundingBox(1.0, 2.0, 1.5, 2.5)),
+        DetectedObject(boundary=square(4.0, 0.0, 0.25), bounding_box=BoundingBox(4.0, 0.0, 4.25, 0.25)),
+    ]
+    request = CallbackCoordinatesRequest(
+        algorithm='colour:0,150,0,80,255,80',
+        request_id='self-1',
+        vision_system='/vs2/detect_object_boundary',
+        stamp=genpy.Time(12, 345),
+        objects=objects,
+    )
     copy = round_trip(request)
     assert copy == request
     assert copy.objects[1].boundary.points[2].x == pytest.approx(4.25)
 
 
 def test_register_vision_service_round_trips():
-    request = RegisterVisionServiceRequest(service_name='/vs1/detect_object_boundary',
-                                           field_of_view=square(0.0, 0.0, 3.0))
+    request = RegisterVisionServiceRequest(
+        service_name='/vs1/detect_object_boundary', field_of_view=square(0.0, 0.0, 3.0)
+    )
     assert round_trip(request) == request
-    assert round_trip(RegisterVisionServiceResponse(False, 'polygon has 2 vertices')).message == \
-        'polygon has 2 vertices'
+    assert (
+        round_trip(RegisterVisionServiceResponse(False, 'polygon has 2 vertices')).message
+        == 'polygon has 2 vertices'
+    )

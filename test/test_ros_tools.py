@@ -12,7 +12,10 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
     assert lines == [
         'string algorithm',
         'drvs/BoundingBox region_of_interest',
-        'float64 min_x', 'float64 min_y', 'float64 max_x', 'float64 max_y',
+        'float64 min_x',
+        'float64 min_y',
+        'float64 max_x',
+        'float64 max_y',
         'string callback_service',
         'string request_id',
         '---',
@@ -22,10 +25,13 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
     ]
 
 
-@pytest.mark.parametrize('message, first_field', [
-    ('drvs/DetectedObject', 'geometry_msgs/Polygon boundary'),
-    ('drvs/BoundingBox', 'float64 min_x'),
-])
+@pytest.mark.parametrize(
+    'message, first_field',
+    [
+        ('drvs/DetectedObject', 'geometry_msgs/Polygon boundary'),
+        ('drvs/BoundingBox', 'float64 min_x'),
+    ],
+)
 def test_rosmsg_show_prints_the_contract(ros: RosHarness, message, first_field):
     result = ros.run(f'rosmsg show {message}')
     assert result.returncode == 0, result.stderr
@@ -35,11 +41,14 @@ def test_rosmsg_show_prints_the_contract(ros: RosHarness, message, first_field):
 def test_rosservice_call_typed_in_a_shell_reaches_a_node(ros: RosHarness):
     node = ros.start_node('test/nodes/echo_detect_boundary.py', name='echo')
     ros.wait_for_service('/echo/detect_object_boundary', node=node)
-    assert ros.run('rosservice type /echo/detect_object_boundary').stdout.strip() == 'drvs/DetectObjectBoundary'
+    assert (
+        ros.run('rosservice type /echo/detect_object_boundary').stdout.strip() == 'drvs/DetectObjectBoundary'
+    )
     result = ros.run(
-        "rosservice call /echo/detect_object_boundary "
+        'rosservice call /echo/detect_object_boundary '
         "\"{algorithm: 'colour:0,0,150,80,80,255', region_of_interest: {min_x: 0.5, min_y: 1.0, max_x: 7.0,"
-        " max_y: 5.5}, callback_service: /robot/callback_coordinates, request_id: r1}\"")
+        ' max_y: 5.5}, callback_service: /robot/callback_coordinates, request_id: r1}"'
+    )
     assert result.returncode == 0, result.stderr + ros.describe()
     assert 'accepted: True' in result.stdout
     assert 'message: "colour:0,0,150,80,80,255|r1|0.5,1.0,7.0,5.5"' in result.stdout
@@ -51,10 +60,14 @@ def test_env_sh_defaults(tmp_path):
 
     from drvs.testing.harness import REPO
 
-    script = (f'unset ROS_MASTER_URI ROS_HOSTNAME ROS_IP; source {REPO}/scripts/env.sh; '
-              'echo "$ROS_MASTER_URI|$ROS_HOSTNAME|$(command -v python)"; '
-              f'ROS_IP=10.0.0.5; unset ROS_HOSTNAME; ROS_MASTER_URI=http://h:1/; source {REPO}/scripts/env.sh; '
-              'echo "$ROS_MASTER_URI|${ROS_HOSTNAME:-unset}"')
-    out = subprocess.run(['bash', '-c', script], capture_output=True, text=True, check=True).stdout.splitlines()
+    script = (
+        f'unset ROS_MASTER_URI ROS_HOSTNAME ROS_IP; source {REPO}/scripts/env.sh; '
+        'echo "$ROS_MASTER_URI|$ROS_HOSTNAME|$(command -v python)"; '
+        f'ROS_IP=10.0.0.5; unset ROS_HOSTNAME; ROS_MASTER_URI=http://h:1/; source {REPO}/scripts/env.sh; '
+        'echo "$ROS_MASTER_URI|${ROS_HOSTNAME:-unset}"'
+    )
+    out = subprocess.run(
+        ['bash', '-c', script], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
     assert out[0] == f'http://127.0.0.1:11311|127.0.0.1|{REPO}/.venv/bin/python'
     assert out[1] == 'http://h:1/|unset'

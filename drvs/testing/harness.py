@@ -34,7 +34,6 @@ class WaitTimeout(AssertionError):
     """A condition did not become true before its deadline."""
 
 
-
 def free_port() -> int:
     """Return a TCP port on 127.0.0.1 that nothing listens on right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
@@ -42,8 +41,13 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def wait_for(condition: Callable[[], object], timeout: float, what: str, interval: float = 0.05,
-             on_timeout: Callable[[], str] | None = None):
+def wait_for(
+    condition: Callable[[], object],
+    timeout: float,
+    what: str,
+    interval: float = 0.05,
+    on_timeout: Callable[[], str] | None = None,
+):
     """Poll ``condition`` until it returns a truthy value, which is returned.
 
     :raises WaitTimeout: after ``timeout`` seconds, naming ``what`` and adding
@@ -56,7 +60,9 @@ def wait_for(condition: Callable[[], object], timeout: float, what: str, interva
             return value
         if time.monotonic() >= deadline:
             detail = on_timeout() if on_timeout else ''
-            raise WaitTimeout(f'timed out after {timeout:.1f} s waiting for {what}' + (f'\n{detail}' if detail else ''))
+            raise WaitTimeout(
+                f'timed out after {timeout:.1f} s waiting for {what}' + (f'\n{detail}' if detail else '')
+            )
         time.sleep(interval)
 
 
@@ -109,8 +115,15 @@ class NodeProcess:
         self.argv = argv
         self.log_path = log_path
         self._log = open(log_path, 'wb')  # noqa: SIM115 - closed in stop()
-        self.process = subprocess.Popen(argv, env=dict(env), cwd=cwd, stdout=self._log, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, start_new_session=True)
+        self.process = subprocess.Popen(
+            argv,
+            env=dict(env),
+            cwd=cwd,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
 
     @property
     def pid(self) -> int:
@@ -211,21 +224,26 @@ class RosHarness:
         env = dict(os.environ)
         for key in ('ROS_IP', 'ROS_NAMESPACE'):
             env.pop(key, None)
-        env.update({
-            SESSION_VARIABLE: self.session,
-            'ROS_HOME': str(self.root / 'ros_home'),
-            'ROS_LOG_DIR': str(self.root / 'log'),
-            'ROS_HOSTNAME': '127.0.0.1',
-            'ROS_PACKAGE_PATH': str(REPO) + (':' + env['ROS_PACKAGE_PATH'] if env.get('ROS_PACKAGE_PATH') else ''),
-            'PYTHONPATH': str(REPO) + (':' + env['PYTHONPATH'] if env.get('PYTHONPATH') else ''),
-            'PYTHONUNBUFFERED': '1',
-        })
+        env.update(
+            {
+                SESSION_VARIABLE: self.session,
+                'ROS_HOME': str(self.root / 'ros_home'),
+                'ROS_LOG_DIR': str(self.root / 'log'),
+                'ROS_HOSTNAME': '127.0.0.1',
+                'ROS_PACKAGE_PATH': str(REPO)
+                + (':' + env['ROS_PACKAGE_PATH'] if env.get('ROS_PACKAGE_PATH') else ''),
+                'PYTHONPATH': str(REPO) + (':' + env['PYTHONPATH'] if env.get('PYTHONPATH') else ''),
+                'PYTHONUNBUFFERED': '1',
+            }
+        )
         if self.master is not None:
             env['ROS_MASTER_URI'] = self.master.uri
         return env
 
     # -- processes ---------------------------------------------------------------------------
-    def spawn(self, name: str, argv: list[str], ros: bool = True, env: Mapping[str, str] | None = None) -> NodeProcess:
+    def spawn(
+        self, name: str, argv: list[str], ros: bool = True, env: Mapping[str, str] | None = None
+    ) -> NodeProcess:
         """Start ``argv`` in its own process group with its output logged; tracked for cleanup."""
         full_env = self.env if ros else {**self.env, 'ROS_MASTER_URI': ''}
         full_env.update(env or {})
@@ -234,9 +252,15 @@ class RosHarness:
         self.nodes.append(node)
         return node
 
-    def start_node(self, executable: str | os.PathLike, name: str | None = None,
-                   params: Mapping[str, object] | None = None, args: Iterable[str] = (),
-                   remap: Mapping[str, str] | None = None, env: Mapping[str, str] | None = None) -> NodeProcess:
+    def start_node(
+        self,
+        executable: str | os.PathLike,
+        name: str | None = None,
+        params: Mapping[str, object] | None = None,
+        args: Iterable[str] = (),
+        remap: Mapping[str, str] | None = None,
+        env: Mapping[str, str] | None = None,
+    ) -> NodeProcess:
         """Start a Python node with ROS arguments: ``__name:=``, ``_param:=value``, remappings.
 
         ``executable`` is a path relative to the repository (``nodes/drvs_server``) or
@@ -259,6 +283,7 @@ class RosHarness:
 
         Fails early, with the node's log, if ``node`` exits before that.
         """
+
         def ready():
             if node is not None and not node.running():
                 raise WaitTimeout(f'{node.name} exited before providing {service}\n{node.describe()}')
@@ -268,8 +293,12 @@ class RosHarness:
 
     def wait_for_topic(self, topic: str, timeout: float = 30.0) -> None:
         """Wait until someone publishes ``topic``."""
-        wait_for(lambda: any(name == topic for name, _ in self.master.system_state()[0]), timeout,
-                 f'a publisher of {topic}', on_timeout=self.describe)
+        wait_for(
+            lambda: any(name == topic for name, _ in self.master.system_state()[0]),
+            timeout,
+            f'a publisher of {topic}',
+            on_timeout=self.describe,
+        )
 
     def describe(self) -> str:
         """Every process's status and log tail, for failure messages."""
@@ -278,8 +307,15 @@ class RosHarness:
     def run(self, command: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
         """Run a shell command with this graph's environment (and scripts/env.sh sourced)."""
         script = f'source {REPO}/scripts/env.sh && {command}'
-        return subprocess.run(['bash', '-c', script], env=self.env, cwd=REPO, capture_output=True, text=True,
-                              timeout=timeout, start_new_session=True)
+        return subprocess.run(
+            ['bash', '-c', script],
+            env=self.env,
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            start_new_session=True,
+        )
 
     # -- teardown ----------------------------------------------------------------------------
     def close(self) -> None:

@@ -14,8 +14,9 @@ from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryResponse
 def handle(request):
     box = request.region_of_interest
     message = f'{request.algorithm}|{request.request_id}|{box.min_x},{box.min_y},{box.max_x},{box.max_y}'
-    return DetectObjectBoundaryResponse(accepted=True, message=message,
-                                        vision_systems=len(request.callback_service))
+    return DetectObjectBoundaryResponse(
+        accepted=True, message=message, vision_systems=len(request.callback_service)
+    )
 
 
 if __name__ == '__main__':
