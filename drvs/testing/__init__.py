@@ -7,6 +7,7 @@ from drvs.testing.harness import (
     WaitTimeout,
     free_port,
     processes_of_session,
+    read_json_lines,
     wait_for,
 )
 
@@ -17,5 +18,6 @@ __all__ = [
     'WaitTimeout',
     'free_port',
     'processes_of_session',
+    'read_json_lines',
     'wait_for',
 ]

@@ -337,3 +337,14 @@ def _param_text(value: object) -> str:
     if isinstance(value, bool):
         return 'true' if value else 'false'
     return str(value)
+
+
+def read_json_lines(path: str | os.PathLike) -> list[dict]:
+    """Every complete JSON line of ``path`` (none if it does not exist yet)."""
+    import json
+
+    try:
+        text = Path(path).read_text()
+    except FileNotFoundError:
+        return []
+    return [json.loads(line) for line in text.splitlines() if line.endswith('}')]

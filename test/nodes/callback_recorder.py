@@ -1,0 +1,50 @@
+#!/usr/bin/env python3
+"""A drvs/CallbackCoordinates server for tests: appends every call as one JSON line to ``~output``.
+
+Parameters: ``~output`` (file, required), ``~service`` (default
+``/robot/callback_coordinates``), ``~delay`` (seconds to hold each call before
+answering, default 0: simulates a slow or hung robot).
+Each line: algorithm, request_id, vision_system, stamp (float seconds), caller,
+objects (a list of outlines, each a list of [x, y]), bounding_boxes.
+"""
+
+import json
+import threading
+import time
+
+import rospy
+
+from drvs.srv import CallbackCoordinates, CallbackCoordinatesResponse
+
+
+def main():
+    rospy.init_node('callback_recorder')
+    output = rospy.get_param('~output')
+    delay = float(rospy.get_param('~delay', 0.0))
+    lock = threading.Lock()
+
+    def handle(request):
+        record = {
+            'algorithm': request.algorithm,
+            'request_id': request.request_id,
+            'vision_system': request.vision_system,
+            'stamp': request.stamp.to_sec(),
+            'caller': request._connection_header.get('callerid', ''),
+            'objects': [[[p.x, p.y] for p in o.boundary.points] for o in request.objects],
+            'bounding_boxes': [
+                [o.bounding_box.min_x, o.bounding_box.min_y, o.bounding_box.max_x, o.bounding_box.max_y]
+                for o in request.objects
+            ],
+        }
+        with lock, open(output, 'a') as handle_:
+            handle_.write(json.dumps(record) + '\n')
+        if delay > 0:
+            time.sleep(delay)
+        return CallbackCoordinatesResponse()
+
+    rospy.Service(rospy.get_param('~service', '/robot/callback_coordinates'), CallbackCoordinates, handle)
+    rospy.spin()
+
+
+if __name__ == '__main__':
+    main()
