@@ -1,0 +1,103 @@
+#!/usr/bin/env python3
+"""A fake vision system for tests: registers a field of view, records every forward it receives.
+
+Serves ``~detect_object_boundary`` (drvs/DetectObjectBoundary) and appends one
+JSON line per event to ``~output``:
+
+- ``{"kind": "forward", "algorithm", "region_of_interest": [min_x, min_y, max_x, max_y],
+  "callback_service", "request_id", "caller"}`` for every request received;
+- ``{"kind": "register", "field_of_view", "service_name", "accepted", "message"}``
+  for every registration answer.
+
+Parameters:
+
+- ``~output`` (required): the JSON-lines file.
+- ``~field_of_view`` (YAML list of [x, y], default ``[]``): what to register.
+  Changing the parameter while the node runs re-registers (a moved camera).
+- ``~register`` (bool, default true): register with ``~server``.
+- ``~server`` (default ``/drvs/register_vision_service``).
+- ``~service_name`` (default this node's ``detect_object_boundary``): the name
+  sent in the registration (a test can make it claim another node's service).
+- ``~renew`` (seconds, default 0 = once): re-register this often (lease renewal);
+  the parameter is also checked this often (0.2 s when 0).
+- ``~hang`` (seconds, default 0): hold every request this long before answering.
+"""
+
+import json
+import threading
+import time
+
+import rospy
+import yaml
+
+from drvs.ros.conversions import points_to_polygon
+from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryResponse, RegisterVisionService
+
+
+def main():
+    rospy.init_node('fake_vision_system')
+    output = rospy.get_param('~output')
+    hang = float(rospy.get_param('~hang', 0.0))
+    renew = float(rospy.get_param('~renew', 0.0))
+    lock = threading.Lock()
+
+    def record(entry):
+        with lock, open(output, 'a') as handle:
+            handle.write(json.dumps(entry) + '\n')
+
+    def handle(request):
+        box = request.region_of_interest
+        record(
+            {
+                'kind': 'forward',
+                'algorithm': request.algorithm,
+                'region_of_interest': [box.min_x, box.min_y, box.max_x, box.max_y],
+                'callback_service': request.callback_service,
+                'request_id': request.request_id,
+                'caller': request._connection_header.get('callerid', ''),
+            }
+        )
+        if hang > 0:
+            time.sleep(hang)
+        return DetectObjectBoundaryResponse(accepted=True, message='fake', vision_systems=1)
+
+    own = rospy.resolve_name('~detect_object_boundary')
+    rospy.Service(own, DetectObjectBoundary, handle)
+    if not rospy.get_param('~register', True):
+        rospy.spin()
+        return
+    service_name = rospy.get_param('~service_name', own)
+    server = rospy.get_param('~server', '/drvs/register_vision_service')
+    rospy.wait_for_service(server, timeout=30.0)
+    register = rospy.ServiceProxy(server, RegisterVisionService)
+    last, last_time = None, 0.0
+    while not rospy.is_shutdown():
+        fov = rospy.get_param('~field_of_view', [])
+        if isinstance(fov, str):
+            fov = yaml.safe_load(fov) or []
+        now = time.monotonic()
+        if fov != last or (renew > 0 and now - last_time >= renew):
+            try:
+                answer = register(service_name, points_to_polygon(fov))
+            except (rospy.ServiceException, rospy.ROSException) as error:
+                rospy.logwarn('registration failed: %s', error)
+                register = rospy.ServiceProxy(server, RegisterVisionService)
+            else:
+                record(
+                    {
+                        'kind': 'register',
+                        'field_of_view': fov,
+                        'service_name': service_name,
+                        'accepted': answer.accepted,
+                        'message': answer.message,
+                    }
+                )
+                last, last_time = fov, now
+        time.sleep(min(renew, 0.2) if renew > 0 else 0.2)
+
+
+if __name__ == '__main__':
+    try:
+        main()
+    except rospy.ROSInterruptException:
+        pass
