@@ -1,0 +1,240 @@
+"""A scenario run's picture and summary, from what was recorded while it ran.
+
+:class:`RunRecord` holds the recording (plans, driven trajectory, re-plans,
+fields of view, the robot's map, per-camera traffic, CPU use). :func:`summary`
+turns it into the ``summary.json`` dictionary and :func:`draw` into the
+picture, in the style of the paper's Figures 7, 8, 10 and 11.
+:func:`hindsight_shortest_length` is the shortest collision-free route among
+the world's static obstacles, computed on a visibility graph (exact for
+polygonal obstacles, unlike a grid).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import LineString, Point, Polygon, box
+from shapely.ops import unary_union
+
+from drvs.world import World
+
+
+@dataclass
+class RunRecord:
+    """Everything a scenario run leaves behind for its picture and summary."""
+
+    world: World
+    reached: bool = False
+    elapsed: float = 0.0
+    state: str = 'starting'
+    reason: str = ''
+    replans: int = 0
+    collisions: int = 0
+    trajectory: list[tuple[float, float, float]] = field(default_factory=list)  # (t, x, y), ground truth
+    humans: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # name -> [(x, y)]
+    plans: list[tuple[float, list[tuple[float, float]]]] = field(default_factory=list)  # (t, path)
+    replan_points: list[tuple[float, float]] = field(default_factory=list)
+    fields_of_view: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    grid: np.ndarray | None = None  # the robot's last occupancy grid (rows = y), 0-100 or -1
+    grid_origin: tuple[float, float] = (0.0, 0.0)
+    grid_resolution: float = 0.05
+    vision_systems: dict[str, dict] = field(default_factory=dict)  # name -> stats
+    cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
+
+
+def path_length(points) -> float:
+    points = [(p[-2], p[-1]) for p in points]
+    return float(sum(math.dist(a, b) for a, b in zip(points, points[1:], strict=False)))
+
+
+def hindsight_shortest_length(world: World, radius: float, start=None, goal=None) -> float:
+    """Length of the shortest route from the robot's start to the station among static obstacles.
+
+    Obstacles are the static objects' footprints grown by ``radius`` (the robot's
+    clearance); the route must stay ``radius`` inside the floor. Humans move, so
+    they are not obstacles in hindsight. Returns ``inf`` when no route exists.
+    """
+    start = Point(start or world.robot.position)
+    goal = Point(goal or world.station.position)
+    floor = box(0.0, 0.0, *world.floor_size).buffer(-radius, join_style=2)
+    grown = [Polygon(o.footprint()).buffer(radius, join_style=2) for o in world.objects if o.kind == 'static']
+    blocked = unary_union(grown) if grown else Polygon()
+    free = floor.difference(blocked).buffer(1e-6)  # a route may run along an obstacle's edge
+    nodes = [start, goal]
+    if not blocked.is_empty:
+        corners = blocked.buffer(1e-3, join_style=2)
+        parts = corners.geoms if hasattr(corners, 'geoms') else [corners]
+        nodes += [Point(c) for part in parts for c in part.exterior.coords[:-1] if free.contains(Point(c))]
+
+    def visible(a: Point, b: Point) -> bool:
+        return free.contains(LineString([a, b]))
+
+    distance = {0: 0.0}
+    queue = [(0.0, 0)]
+    goal_index = 1
+    done = set()
+    while queue:
+        d, i = heapq.heappop(queue)
+        if i in done:
+            continue
+        if i == goal_index:
+            return d
+        done.add(i)
+        for j, other in enumerate(nodes):
+            if j in done or j == i:
+                continue
+            nd = d + nodes[i].distance(other)
+            if nd < distance.get(j, math.inf) and visible(nodes[i], other):
+                distance[j] = nd
+                heapq.heappush(queue, (nd, j))
+    return math.inf
+
+
+def summary(record: RunRecord, best_length: float) -> dict:
+    """The ``summary.json`` content: outcome, lengths, re-plans, collisions, traffic and CPU."""
+    return {
+        'world': str(record.world.path),
+        'reached': bool(record.reached),
+        'state': record.state,
+        'reason': record.reason,
+        'elapsed': round(record.elapsed, 2),
+        'driven_length': round(path_length(record.trajectory), 3),
+        'best_length': round(best_length, 3) if math.isfinite(best_length) else None,
+        'replans': record.replans,
+        'collisions': record.collisions,
+        'vision_systems': record.vision_systems,
+        'cpu': record.cpu,
+    }
+
+
+def draw(record: RunRecord, path: str | Path) -> None:
+    """Write the run's picture: floor, fields of view, obstacles, plans, trajectory, re-plans."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon as Patch
+    from matplotlib.patches import Rectangle
+
+    world = record.world
+    width, height = world.floor_size
+    figure, axes = plt.subplots(figsize=(10, 10 * height / width + 0.8), dpi=110)
+    axes.add_patch(Rectangle((0, 0), width, height, facecolor='#f4f4f0', edgecolor='black'))
+
+    if record.grid is not None and record.grid.size:
+        rows, cols = record.grid.shape
+        extent = (
+            record.grid_origin[0],
+            record.grid_origin[0] + cols * record.grid_resolution,
+            record.grid_origin[1],
+            record.grid_origin[1] + rows * record.grid_resolution,
+        )
+        occupied = np.ma.masked_less(record.grid.astype(float), 50)
+        axes.imshow(
+            occupied,
+            origin='lower',
+            extent=extent,
+            cmap='Oranges',
+            vmin=0,
+            vmax=150,
+            alpha=0.6,
+            interpolation='nearest',
+            zorder=1,
+        )
+
+    palette = plt.get_cmap('tab10')
+    for i, (name, fov) in enumerate(sorted(record.fields_of_view.items())):
+        colour = palette(i % 10)
+        axes.add_patch(
+            Patch(fov, closed=True, fill=False, linestyle='--', linewidth=1.3, edgecolor=colour, zorder=2)
+        )
+        cx, cy = np.mean(np.asarray(fov), axis=0)
+        camera = next((c for c in world.vision_systems if c.name == name.strip('/').split('/')[0]), None)
+        if camera is not None:
+            cx, cy = camera.position[:2]
+        axes.plot(cx, cy, marker='s', color='gold', markeredgecolor='black', markersize=9, zorder=6)
+        axes.annotate(
+            name.strip('/').split('/')[0],
+            (cx, cy),
+            xytext=(6, 6),
+            textcoords='offset points',
+            color=colour,
+            fontsize=9,
+            zorder=6,
+        )
+
+    def rgb(colour):
+        return tuple(c / 255.0 for c in colour)
+
+    for obstacle in world.objects:
+        if obstacle.kind == 'static':
+            axes.add_patch(
+                Patch(
+                    obstacle.footprint(),
+                    closed=True,
+                    facecolor=rgb(obstacle.colour),
+                    alpha=0.8,
+                    edgecolor='black',
+                    zorder=3,
+                )
+            )
+    for name, trace in record.humans.items():
+        if trace:
+            xs, ys = zip(*trace, strict=True)
+            axes.plot(xs, ys, ':', color='red', linewidth=1, zorder=3)
+            axes.plot(xs[-1], ys[-1], 'o', color='red', markersize=10, zorder=3, label=f'human {name}')
+    axes.add_patch(
+        Patch(
+            world.station.footprint(),
+            closed=True,
+            facecolor=rgb(world.station.colour),
+            edgecolor='black',
+            zorder=3,
+            label='charging station',
+        )
+    )
+
+    plan_colours = plt.get_cmap('winter')
+    for i, (_, plan) in enumerate(record.plans):
+        if len(plan) >= 2:
+            xs, ys = zip(*plan, strict=True)
+            colour = plan_colours(i / max(1, len(record.plans) - 1)) if i else 'blue'
+            axes.plot(
+                xs,
+                ys,
+                '-',
+                color=colour,
+                linewidth=1.5,
+                alpha=0.8,
+                zorder=4,
+                label='first plan' if i == 0 else ('re-plans' if i == 1 else None),
+            )
+    if record.trajectory:
+        _, xs, ys = zip(*record.trajectory, strict=True)
+        axes.plot(xs, ys, '-', color='red', linewidth=2.5, zorder=5, label='driven trajectory')
+        axes.plot(
+            xs[0], ys[0], 'o', color='green', markeredgecolor='black', markersize=10, zorder=6, label='start'
+        )
+    if record.replan_points:
+        xs, ys = zip(*record.replan_points, strict=True)
+        axes.plot(xs, ys, 'x', color='black', markersize=10, markeredgewidth=2, zorder=7, label='re-plan')
+
+    outcome = 'reached the station' if record.reached else f'did not reach the station ({record.state})'
+    axes.set_title(
+        f'{world.path.stem}: {outcome} in {record.elapsed:.1f} s, {record.replans} re-plan(s), '
+        f'{record.collisions} collision(s)'
+    )
+    axes.set_xlim(-0.2, width + 0.2)
+    axes.set_ylim(-0.2, height + 0.2)
+    axes.set_aspect('equal')
+    axes.set_xlabel('x (m, map)')
+    axes.set_ylabel('y (m, map)')
+    axes.grid(True, linewidth=0.3)
+    axes.legend(loc='upper left', fontsize=8, framealpha=0.8)
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
