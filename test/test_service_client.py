@@ -7,6 +7,7 @@ import pytest
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, DetectObjectBoundaryRequest
+from drvs.testing import wait_for
 
 ECHO = 'test/nodes/echo_detect_boundary.py'
 FAKE = 'test/nodes/fake_vision_system.py'
@@ -21,9 +22,12 @@ def request(request_id='r1'):
     )
 
 
-def start_echo(ros, name='echo'):
+def start_echo(ros, name='echo', replacing=None):
+    """Start the echo node; with ``replacing`` (an old URI), wait until the master has the new one."""
     node = ros.start_node(ECHO, name=name)
-    ros.wait_for_service(f'/{name}/detect_object_boundary', node=node)
+    service = f'/{name}/detect_object_boundary'
+    ros.wait_for_service(service, node=node)
+    wait_for(lambda: ros.master.lookup_service(service) not in (None, replacing), 30.0, f'new {service}')
     return node
 
 
@@ -122,16 +126,18 @@ def test_reconnects_after_the_far_side_restarts(ros):
     )
     try:
         assert client.call(request('before')).accepted
+        old_uri = ros.master.lookup_service('/echo/detect_object_boundary')
         assert node.interrupt() == 0
         # Restarted while the client held its idle connection: the stale one is noticed.
-        start_echo(ros)
+        node = start_echo(ros, replacing=old_uri)
         assert client.call(request('after')).message.split('|')[1] == 'after'
         assert client.connections == 2
         # Gone: the call fails with a message, and the next one after a restart works.
-        ros.nodes[-1].interrupt()
+        old_uri = ros.master.lookup_service('/echo/detect_object_boundary')
+        assert node.interrupt() == 0
         with pytest.raises(ServiceCallError, match='^service /echo/detect_object_boundary: '):
             client.call(request('gone'))
-        start_echo(ros)
+        start_echo(ros, replacing=old_uri)
         assert client.call(request('back')).message.split('|')[1] == 'back'
     finally:
         client.close()
