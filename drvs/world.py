@@ -232,6 +232,13 @@ def _camera(r: _Reader, data, key: str) -> Camera:
     )
 
 
+def _matches(model, colour) -> bool:
+    """Whether ``model`` finds an object in an image of one flat ``colour``."""
+    import numpy as np
+
+    return bool(model.mask(np.full((1, 1, 3), colour, np.uint8)).any())
+
+
 def load_world(path: str | Path) -> World:
     """Read and validate a world file.
 
@@ -296,9 +303,14 @@ def load_world(path: str | Path) -> World:
             raise WorldError(f'{path}: colour_models.{role}: missing (roles: {", ".join(ROLES)})')
     for role, text in models.items():
         try:
-            parse_algorithm(text)
+            model = parse_algorithm(text)
         except AlgorithmError as error:
             raise WorldError(f'{path}: colour_models.{role}: {error}') from None
+        if _matches(model, floor_colour):
+            raise WorldError(
+                f'{path}: floor.colour: {list(floor_colour)} is matched by colour_models.{role} '
+                f'({text}); the floor must be a colour that no colour model matches'
+            )
 
     return World(
         path=path,

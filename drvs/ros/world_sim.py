@@ -1,0 +1,125 @@
+"""The world_sim node: the simulated world, the only holder of ground truth.
+
+It builds a world file in PyBullet (DIRECT), walks every ``human`` object around
+its waypoint loop at its speed, drives the robot's body from ``/robot/cmd_vel``
+(x, y velocity in ``map``, capped at the robot's speed, stopping at obstacles and
+the floor's edge, counting contacts; see :mod:`drvs.simulation`) and publishes
+every body's pose.
+
+Parameters (private):
+
+``~world`` (str, required)
+    The world file.
+``~rate`` (float, default 30)
+    Steps and publications per second.
+``~cmd_timeout`` (float, default 0.5)
+    Seconds without a ``/robot/cmd_vel`` message after which the robot stops.
+
+Topics:
+
+``/robot/cmd_vel`` (geometry_msgs/Twist, subscribed)
+    ``linear.x``, ``linear.y``: the robot's velocity in ``map``, m/s.
+``~poses`` = ``/world_sim/poses`` (std_msgs/String, JSON, every step)
+    ``{"stamp": seconds, "poses": {"NAME": [x, y, yaw], ...}}`` for every body
+    (``robot``, ``station`` and each object). For the vision systems, which
+    render the world from it; robots never read it.
+``~ground_truth`` = ``/world_sim/ground_truth`` (std_msgs/String, JSON, every step)
+    ``{"stamp", "time" (simulated seconds), "robot": {"position": [x, y], "yaw",
+    "command": [vx, vy]}, "contacts" (count of new touches so far), "touching"
+    (names, ``floor_edge`` for the edge), "blocked", "travelled" (m), "objects"}``.
+    For tests and the scenario recorder only: a robot must never subscribe to it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+
+import rospy
+from geometry_msgs.msg import Twist
+from std_msgs.msg import String
+
+from drvs.simulation import Simulation
+from drvs.world import load_world
+
+MAX_STEP = 0.2
+"""Seconds; a longer gap between timer ticks (a stalled machine) is simulated as this."""
+
+
+class WorldSimNode:
+    """Simulation + topics; :meth:`start` builds the world and starts the timer."""
+
+    def __init__(self, world_path: str, rate: float = 30.0, cmd_timeout: float = 0.5):
+        if not rate > 0:
+            raise ValueError(f'~rate: must be positive, got {rate}')
+        self.world = load_world(world_path)
+        self.rate = rate
+        self.cmd_timeout = cmd_timeout
+        self.simulation: Simulation | None = None
+        self._lock = threading.Lock()  # guards the simulation and the command time
+        self._last_command = None
+        self._last_tick = None
+        self._timer = None
+
+    @classmethod
+    def from_params(cls) -> WorldSimNode:
+        return cls(
+            rospy.get_param('~world'),
+            rate=float(rospy.get_param('~rate', 30.0)),
+            cmd_timeout=float(rospy.get_param('~cmd_timeout', 0.5)),
+        )
+
+    def start(self) -> None:
+        self.simulation = Simulation(self.world)
+        self.poses_pub = rospy.Publisher('~poses', String, queue_size=2)
+        self.truth_pub = rospy.Publisher('~ground_truth', String, queue_size=2)
+        rospy.Subscriber('/robot/cmd_vel', Twist, self._on_cmd_vel, queue_size=2)
+        self._last_tick = rospy.get_time()
+        self._timer = rospy.Timer(rospy.Duration(1.0 / self.rate), self._tick)
+        rospy.on_shutdown(self.stop)
+        rospy.loginfo(
+            '%s: world %s with %d object(s), %d moving; %.0f Hz',
+            rospy.get_name(),
+            self.world.path,
+            len(self.world.objects),
+            len(self.simulation.loops),
+            self.rate,
+        )
+
+    def _on_cmd_vel(self, message: Twist) -> None:
+        vx, vy = message.linear.x, message.linear.y
+        if not (math.isfinite(vx) and math.isfinite(vy)):
+            rospy.logwarn_throttle(
+                5.0, '%s: /robot/cmd_vel not finite (%r, %r): stopping', rospy.get_name(), vx, vy
+            )
+        with self._lock:
+            if self.simulation is None:
+                return
+            self.simulation.set_command(vx, vy)
+            self._last_command = rospy.get_time()
+
+    def _tick(self, _event) -> None:
+        now = rospy.get_time()
+        with self._lock:
+            if self.simulation is None:  # stopped
+                return
+            dt = min(max(now - self._last_tick, 0.0), MAX_STEP)
+            self._last_tick = now
+            if self._last_command is not None and now - self._last_command > self.cmd_timeout:
+                self.simulation.set_command(0.0, 0.0)
+                self._last_command = None
+            self.simulation.step(dt)
+            poses = {name: [round(v, 6) for v in pose] for name, pose in self.simulation.poses().items()}
+            truth = self.simulation.ground_truth()
+        self.poses_pub.publish(String(json.dumps({'stamp': now, 'poses': poses})))
+        self.truth_pub.publish(String(json.dumps({'stamp': now, **truth})))
+
+    def stop(self) -> None:
+        if self._timer is not None:
+            self._timer.shutdown()
+            self._timer = None
+        with self._lock:
+            if self.simulation is not None:
+                self.simulation.scene.close()
+                self.simulation = None

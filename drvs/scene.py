@@ -1,0 +1,179 @@
+"""A world file built in PyBullet (DIRECT): boxes on a floor, kinematic poses, overhead rendering.
+
+Shared by world_sim (which moves bodies and asks PyBullet for contacts) and by
+each vision system (which keeps its own copy in step and renders its view).
+Every body is a flat-coloured box; the light is ambient only and shadows are
+off, so a pixel shows exactly its body's colour: the floor can never take a
+shade that a colour model matches by accident.
+
+One :class:`Scene` owns one PyBullet client; PyBullet is not thread-safe, so
+callers serialise access (the nodes hold a lock around each call).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet
+
+from drvs.camera import PinholeCamera
+from drvs.world import Body, World
+
+log = logging.getLogger('rosout.' + __name__)
+
+FLOOR_THICKNESS = 0.02
+FLOOR_MARGIN = 100.0
+"""The floor's visual plate reaches this far beyond ``floor.size`` so no view shows the background."""
+
+
+TINY_RENDERER_SAMPLE = (-0.5, 0.5)
+"""Where TinyRenderer samples the scene for array pixel (row r, column c), relative to that
+pixel's centre (c + 0.5, r + 0.5) in :mod:`drvs.camera`'s convention: at (c, r + 1). Measured
+(test_vision checks it): a flat plate's mask covers exactly the columns c with u_left <= c <= u_right
+and the rows r with v_top <= r + 1 <= v_bottom of its projected corners."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One captured view: RGB (H, W, 3) uint8, depth along the optical axis (H, W) metres,
+    the camera it was taken with, when (seconds, the caller's clock) and ``sample_offset``:
+    add it to array-pixel coordinates to get the camera model's (u, v) of what they show."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    camera: PinholeCamera
+    stamp: float
+    sample_offset: tuple[float, float] = (0.0, 0.0)
+
+    def to_camera(self, pixels) -> np.ndarray:
+        """Array-pixel (u, v) positions -> the camera model's (u, v)."""
+        return np.asarray(pixels, float) + np.asarray(self.sample_offset)
+
+
+def _rgba(colour) -> list[float]:
+    return [c / 255.0 for c in colour] + [1.0]
+
+
+def _quaternion(yaw: float) -> list[float]:
+    return [0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0)]
+
+
+class Scene:
+    """The bodies of a world in a private PyBullet DIRECT client, addressed by name.
+
+    Names: ``robot``, ``station`` and each object's ``name``.
+    """
+
+    def __init__(self, world: World):
+        self.world = world
+        self.client = pybullet.connect(pybullet.DIRECT)
+        self.bodies: dict[str, int] = {}
+        self.sizes: dict[str, tuple[float, float, float]] = {}
+        self._poses: dict[str, tuple[float, float, float]] = {}
+        width, depth = world.floor_size
+        floor = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=[width / 2 + FLOOR_MARGIN, depth / 2 + FLOOR_MARGIN, FLOOR_THICKNESS / 2],
+            rgbaColor=_rgba(world.floor_colour),
+            physicsClientId=self.client,
+        )
+        self.floor = pybullet.createMultiBody(
+            0, -1, floor, [width / 2, depth / 2, -FLOOR_THICKNESS / 2], physicsClientId=self.client
+        )
+        for body in (world.robot, world.station, *world.objects):
+            self._add(body)
+
+    def _add(self, body: Body) -> None:
+        half = [s / 2.0 for s in body.size]
+        visual = pybullet.createVisualShape(
+            pybullet.GEOM_BOX, halfExtents=half, rgbaColor=_rgba(body.colour), physicsClientId=self.client
+        )
+        collision = pybullet.createCollisionShape(
+            pybullet.GEOM_BOX, halfExtents=half, physicsClientId=self.client
+        )
+        self.bodies[body.name] = pybullet.createMultiBody(
+            0, collision, visual, [0, 0, half[2]], physicsClientId=self.client
+        )
+        self.sizes[body.name] = tuple(body.size)
+        self.set_pose(body.name, body.position[0], body.position[1], body.yaw)
+
+    # -- poses ---------------------------------------------------------------------------------
+    def set_pose(self, name: str, x: float, y: float, yaw: float) -> None:
+        """Place body ``name`` with its footprint centred at (x, y), turned by ``yaw`` radians."""
+        if self._poses.get(name) == (x, y, yaw):
+            return
+        pybullet.resetBasePositionAndOrientation(
+            self.bodies[name],
+            [x, y, self.sizes[name][2] / 2.0],
+            _quaternion(yaw),
+            physicsClientId=self.client,
+        )
+        self._poses[name] = (x, y, yaw)
+
+    def pose(self, name: str) -> tuple[float, float, float]:
+        return self._poses[name]
+
+    def poses(self) -> dict[str, tuple[float, float, float]]:
+        return dict(self._poses)
+
+    def apply_poses(self, poses: dict) -> None:
+        """Set every known body's pose from {name: (x, y, yaw)}; unknown names are skipped."""
+        for name, (x, y, yaw) in poses.items():
+            if name in self.bodies:
+                self.set_pose(name, float(x), float(y), float(yaw))
+
+    # -- contacts ------------------------------------------------------------------------------
+    def distances(self, name: str, others, within: float) -> dict[str, float]:
+        """Signed distance (negative = penetration) from ``name`` to each of ``others`` closer
+        than ``within`` metres."""
+        found = {}
+        body = self.bodies[name]
+        for other in others:
+            points = pybullet.getClosestPoints(body, self.bodies[other], within, physicsClientId=self.client)
+            if points:
+                found[other] = min(point[8] for point in points)
+        return found
+
+    # -- rendering -----------------------------------------------------------------------------
+    def render(self, camera: PinholeCamera, stamp: float = 0.0) -> Frame:
+        """Render ``camera``'s view with TinyRenderer: flat colours, no shadows."""
+        view = pybullet.computeViewMatrix(camera.eye, camera.target, camera.up, physicsClientId=self.client)
+        projection = pybullet.computeProjectionMatrixFOV(
+            camera.fov_deg, camera.aspect, camera.near, camera.far, physicsClientId=self.client
+        )
+        width, height, rgba, depth, _ = pybullet.getCameraImage(
+            camera.width,
+            camera.height,
+            view,
+            projection,
+            shadow=0,
+            lightAmbientCoeff=1.0,
+            lightDiffuseCoeff=0.0,
+            lightSpecularCoeff=0.0,
+            renderer=pybullet.ER_TINY_RENDERER,
+            flags=pybullet.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=self.client,
+        )
+        rgb = np.ascontiguousarray(np.reshape(np.asarray(rgba, np.uint8), (height, width, 4))[..., :3])
+        metric = camera.metric_depth(np.reshape(np.asarray(depth, np.float32), (height, width)))
+        return Frame(
+            rgb=rgb,
+            depth=metric.astype(np.float32),
+            camera=camera,
+            stamp=stamp,
+            sample_offset=TINY_RENDERER_SAMPLE,
+        )
+
+    def close(self) -> None:
+        if self.client is not None:
+            pybullet.disconnect(physicsClientId=self.client)
+            self.client = None
+
+    def __enter__(self) -> Scene:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

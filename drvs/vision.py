@@ -1,0 +1,145 @@
+"""A vision system's processing: run an algorithm on a frame, put each outline on the floor in ``map``.
+
+The algorithm (from :mod:`drvs.algorithms`) finds outlines in pixels. Each
+outline vertex is lifted to 3D with the depth buffer (the depth of the object's
+own pixel at that vertex; the nearest one, which is the top face seen from
+above) and dropped vertically onto the floor. Seen from overhead, the visible
+top face and sides of a box lie straight above its footprint, so a tall box is
+reported where it stands, not where its top appears on a floor-plane projection.
+
+:class:`FrameCache` lets requests that arrive close together share one render.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+from shapely.geometry import Polygon, box
+from shapely.geometry.polygon import orient
+
+from drvs.algorithms import PixelObject
+from drvs.scene import Frame
+
+log = logging.getLogger('rosout.' + __name__)
+
+Outline = list[tuple[float, float]]
+
+
+def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
+    """Depth at each outline vertex, read from the object's own pixels next to it.
+
+    A vertex (u, v) lies on pixel edges; of the pixels around it, those whose
+    centres are inside the outline belong to the object; the nearest depth among
+    them is used (searching a little further out for a vertex on a thin spike).
+    """
+    height, width = frame.depth.shape
+    contour = outline.astype(np.float32).reshape(-1, 1, 2)
+    depths = np.empty(len(outline))
+    for i, (u, v) in enumerate(outline):
+        cu, cv = int(round(u)), int(round(v))
+        found = None
+        for radius in (1, 2, 3):
+            best = None
+            for row in range(cv - radius, cv + radius):
+                for col in range(cu - radius, cu + radius):
+                    if not (0 <= row < height and 0 <= col < width):
+                        continue
+                    if cv2.pointPolygonTest(contour, (col + 0.5, row + 0.5), False) < 0:
+                        continue
+                    d = frame.depth[row, col]
+                    best = d if best is None else min(best, d)
+            if best is not None:
+                found = best
+                break
+        if found is None:  # degenerate outline: the nearest pixel whatever it is
+            found = frame.depth[min(max(cv, 0), height - 1), min(max(cu, 0), width - 1)]
+        depths[i] = found
+    return depths
+
+
+def project_outline(frame: Frame, pixel_object: PixelObject) -> list[Polygon]:
+    """The floor polygon(s) under an outline found in ``frame``, in ``map``."""
+    outline = np.asarray(pixel_object.outline, float)
+    points = frame.camera.pixel_to_point(frame.to_camera(outline), vertex_depths(frame, outline))
+    shape = Polygon(points[:, :2]).buffer(0)
+    return _polygons(shape)
+
+
+def _polygons(shape) -> list[Polygon]:
+    if shape.is_empty:
+        return []
+    if shape.geom_type == 'Polygon':
+        return [shape] if shape.area > 0 else []
+    return [part for part in getattr(shape, 'geoms', []) if part.geom_type == 'Polygon' and part.area > 0]
+
+
+def ring(shape: Polygon) -> Outline:
+    """A polygon's exterior, counter-clockwise, without the closing vertex."""
+    return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]
+
+
+def locate_objects(
+    frame: Frame,
+    algorithm,
+    region_of_interest: tuple[float, float, float, float],
+    min_area: float = 20.0,
+    epsilon: float = 1.0,
+) -> list[Outline]:
+    """Outlines on the floor (``map``, counter-clockwise) of the objects ``algorithm`` finds in
+    ``frame`` that intersect ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it."""
+    region = box(*region_of_interest)
+    found = []
+    for pixel_object in algorithm.detect(frame.rgb, min_area, epsilon):
+        for floor_shape in project_outline(frame, pixel_object):
+            for part in _polygons(floor_shape.intersection(region)):
+                found.append(ring(part))
+    return found
+
+
+def draw_detections(frame: Frame, outlines: list[Outline], colour=(255, 0, 255)) -> np.ndarray:
+    """A copy of the frame's RGB with floor outlines drawn where they lie on the floor."""
+    image = frame.rgb.copy()
+    for outline in outlines:
+        points = np.c_[np.asarray(outline), np.zeros(len(outline))]
+        pixels = frame.camera.project_3d_to_pixel(points)
+        if np.all(np.isfinite(pixels)):
+            array = pixels - np.asarray(frame.sample_offset) - 0.5  # pixel centres
+            cv2.polylines(image, [np.round(array).astype(np.int32)], True, colour, 2)
+    return image
+
+
+class FrameCache:
+    """The last captured frame, shared by requests that arrive within ``max_age`` of its capture.
+
+    ``capture(stamp)`` renders a frame stamped ``stamp`` (the capture time on
+    ``clock``). :meth:`get` is thread-safe: concurrent requests wait for the one
+    render in progress and then reuse it.
+    """
+
+    def __init__(
+        self, capture: Callable[[float], Frame], max_age: float, clock: Callable[[], float] = time.time
+    ):
+        self.capture = capture
+        self.max_age = max_age
+        self.clock = clock
+        self.renders = 0
+        self.hits = 0
+        self._frame: Frame | None = None
+        self._lock = threading.Lock()
+
+    def get(self, arrival: float) -> tuple[Frame, bool]:
+        """A frame for a request that arrived at ``arrival``: (frame, whether it was reused)."""
+        with self._lock:
+            frame = self._frame
+            if frame is not None and frame.stamp >= arrival - self.max_age:
+                self.hits += 1
+                return frame, True
+            frame = self.capture(self.clock())
+            self._frame = frame
+            self.renders += 1
+            return frame, False
