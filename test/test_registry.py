@@ -1,0 +1,127 @@
+"""The registry: register, move, renew, unregister, leases and failure counts (no ROS)."""
+
+import pytest
+
+from drvs.registry import Registry, ValidationError
+from drvs.spatial_index import FieldOfViewIndex
+
+
+class Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def square(x, y, size=1.0):
+    return [(x, y), (x + size, y), (x + size, y + size), (x, y + size)]
+
+
+@pytest.fixture
+def clock():
+    return Clock()
+
+
+@pytest.fixture
+def registry(clock):
+    return Registry(lease=10.0, max_failures=3, clock=clock, index=FieldOfViewIndex(background=False))
+
+
+def test_register_move_renew_unregister(registry):
+    assert registry.register('/a', square(0, 0)) == 'registered'
+    assert registry.match((0.5, 0.5, 0.6, 0.6)) == ['/a']
+    version = registry.version
+    assert registry.register('/a', square(0, 0)) == 'renewed'
+    assert registry.version == version  # a renewal changes nothing listed
+    assert registry.register('/a', square(5, 5)) == 'moved'
+    assert registry.match((0.5, 0.5, 0.6, 0.6)) == []
+    assert registry.match((5.5, 5.5, 5.6, 5.6)) == ['/a']
+    assert registry.entries()[0].field_of_view == ((5.0, 5.0), (6.0, 5.0), (6.0, 6.0), (5.0, 6.0))
+    assert registry.register('/a', []) == 'unregistered'
+    assert registry.register('/a', []) == 'not registered'
+    assert registry.match((5.5, 5.5, 5.6, 5.6)) == []
+    assert len(registry) == 0
+
+
+def test_invalid_field_of_view_changes_nothing(registry):
+    registry.register('/a', square(0, 0))
+    with pytest.raises(ValidationError, match='^field_of_view: 2 vertices; a polygon needs at least 3$'):
+        registry.register('/a', [(0, 0), (1, 1)])
+    assert registry.match((0.5, 0.5, 0.6, 0.6)) == ['/a']
+
+
+def test_lease_expires_unless_renewed(registry, clock):
+    registry.register('/a', square(0, 0))
+    registry.register('/b', square(0, 0))
+    clock.now += 6
+    registry.register('/b', square(0, 0))  # renewed: lasts until now + 10
+    clock.now += 4
+    assert registry.match((0, 0, 1, 1)) == ['/b']  # /a expired: no more requests, even before expire()
+    assert registry.expire() == ['/a']
+    assert '/a' not in registry
+    clock.now += 5.9
+    assert registry.expire() == []
+    clock.now += 0.1
+    assert registry.expire() == ['/b']
+    assert registry.match((0, 0, 1, 1)) == []
+
+
+def test_moved_entry_keeps_its_new_lease(registry, clock):
+    registry.register('/a', square(0, 0))
+    clock.now += 9
+    registry.register('/a', square(3, 3))
+    clock.now += 2
+    assert registry.expire() == []
+    assert registry.match((3, 3, 4, 4)) == ['/a']
+
+
+def test_consecutive_failures_remove_and_registering_brings_back(registry):
+    registry.register('/a', square(0, 0))
+    assert registry.record_failure('/a') is False
+    assert registry.record_failure('/a') is False
+    registry.record_success('/a')  # resets the run of failures
+    assert [registry.record_failure('/a') for _ in range(3)] == [False, False, True]
+    assert '/a' not in registry
+    assert registry.record_failure('/a') is False
+    assert registry.register('/a', square(0, 0)) == 'registered'
+    assert registry.failures('/a') == 0
+    assert registry.match((0, 0, 1, 1)) == ['/a']
+
+
+@pytest.mark.parametrize(
+    'lease, max_failures, message',
+    [(0, 3, 'lease: must be positive, got 0'), (1, 0, 'max_failures: must be at least 1, got 0')],
+)
+def test_bad_settings(lease, max_failures, message):
+    with pytest.raises(ValueError) as caught:
+        Registry(lease=lease, max_failures=max_failures)
+    assert str(caught.value) == message
+
+
+def test_many_moves_across_rebuilds_route_correctly(clock):
+    index = FieldOfViewIndex(background=False, min_rebuild=8, max_rebuild=8)
+    registry = Registry(lease=10.0, clock=clock, index=index)
+    for step in range(5):
+        for n in range(40):
+            registry.register(f'/c{n}', square(n * 2 + step * 100, 0))
+        for n in range(0, 40, 7):
+            registry.unregister(f'/c{n}')
+        expected = sorted(f'/c{n}' for n in range(40) if n % 7)
+        assert registry.match((step * 100 - 1, -1, step * 100 + 100, 2)) == expected
+        assert registry.match((step * 100 - 50, -1, step * 100 - 2, 2)) == []
+    assert index.rebuilds > 5
+
+
+def test_background_rebuild_keeps_changes_made_during_it():
+    index = FieldOfViewIndex(background=True, min_rebuild=16, max_rebuild=16)
+    registry = Registry(lease=60.0, index=index)
+    for n in range(500):
+        registry.register(f'/c{n}', square(n, 0, 0.5))
+    index.wait_for_rebuild(30)
+    for n in range(500):
+        registry.register(f'/c{n}', square(n, 10, 0.5))
+    index.wait_for_rebuild(30)
+    index.rebuild_now()
+    assert registry.match((-1, -1, 600, 1)) == []
+    assert len(registry.match((-1, 9, 600, 11))) == 500
