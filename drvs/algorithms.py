@@ -109,7 +109,8 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
     Pixel (row v, column u) covers the square [u, u+1] x [v, v+1]. OpenCV traces
     contours through pixel centres (u + 0.5, v + 0.5); the traced polygon is
     grown by half a pixel with mitred corners so a region's outline runs along
-    its outer pixel edges and its area matches its pixel count.
+    its outer pixel edges and its area matches its pixel count. Pixels that touch
+    only at a corner, or through a one-pixel-wide neck, make separate objects.
     """
     import cv2
     from shapely.geometry import Polygon
@@ -130,14 +131,15 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
             ).convex_hull
         else:
             shape = Polygon(centres).buffer(0).buffer(0.5, join_style=2, mitre_limit=2.0)
-        if shape.is_empty or shape.area < min_area:
-            continue
-        if shape.geom_type != 'Polygon':  # a thin neck split it: keep the largest part
-            shape = max(shape.geoms, key=lambda part: part.area)
-        simple = shape.simplify(epsilon, preserve_topology=True)
-        ring = np.asarray(simple.exterior.coords)[:-1]
-        if len(ring) >= 3:
-            found.append(PixelObject(ring, float(shape.area)))
+        # Parts joined only diagonally or by a one-pixel neck come apart here: each is an object.
+        parts = shape.geoms if shape.geom_type == 'MultiPolygon' else [shape]
+        for part in parts:
+            if part.is_empty or part.area < min_area:
+                continue
+            simple = part.simplify(epsilon, preserve_topology=True)
+            ring = np.asarray(simple.exterior.coords)[:-1]
+            if len(ring) >= 3:
+                found.append(PixelObject(ring, float(part.area)))
     return found
 
 

@@ -1,0 +1,174 @@
+"""World files: the loader's values, defaults, and its refusals naming file, key and expectation."""
+
+import pytest
+import yaml
+
+from drvs.world import WorldError, load_world
+
+BASE = {
+    'floor': {'size': [4.0, 3.0]},
+    'robot': {'position': [0.5, 1.5], 'size': [0.3, 0.3, 0.2], 'colour': [0, 200, 0], 'speed': 0.4},
+    'station': {'position': [3.5, 2.5], 'size': [0.4, 0.3, 0.1], 'colour': [0, 0, 220]},
+    'objects': [
+        {
+            'name': 'box1',
+            'kind': 'static',
+            'position': [2.0, 1.0],
+            'size': [0.4, 0.6, 0.5],
+            'colour': [60, 60, 60],
+        },
+        {
+            'name': 'walker',
+            'kind': 'human',
+            'position': [3.0, 0.5],
+            'size': [0.3, 0.3, 1.7],
+            'colour': [220, 0, 0],
+            'waypoints': [[3.0, 0.5], [3.0, 2.5]],
+            'speed': 0.3,
+        },
+    ],
+    'vision_systems': [{'name': 'vs1', 'position': [2.0, 1.5, 3.0], 'fov_deg': 60}],
+    'colour_models': {
+        'self': 'colour:0,150,0,80,255,80',
+        'station': 'colour:0,0,150,80,80,255',
+        'obstacle': 'colour:40,40,40,90,90,90',
+        'human': 'colour:150,0,0,255,80,80',
+    },
+}
+
+
+def write(tmp_path, data):
+    path = tmp_path / 'world.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def changed(path_of_key, value):
+    """BASE with one key replaced (value None: removed); path_of_key like 'objects.0.size'."""
+    data = yaml.safe_load(yaml.safe_dump(BASE))
+    *parents, last = path_of_key.split('.')
+    node = data
+    for key in parents:
+        node = node[int(key)] if isinstance(node, list) else node[key]
+    last = int(last) if isinstance(node, list) else last
+    if value is None:
+        del node[last]
+    else:
+        node[last] = value
+    return data
+
+
+def test_a_world_loads_with_defaults(tmp_path):
+    world = load_world(write(tmp_path, BASE))
+    assert world.floor_size == (4.0, 3.0)
+    assert world.floor_colour == (255, 255, 255)
+    assert world.robot.speed == 0.4 and world.robot.size == (0.3, 0.3, 0.2)
+    walker = world.objects[1]
+    assert walker.moving and walker.waypoints == ((3.0, 0.5), (3.0, 2.5)) and walker.speed == 0.3
+    camera = world.camera('vs1')
+    assert camera.resolution == (800, 600)
+    assert camera.target == (2.0, 1.5, 0.0) and camera.up == (0.0, 1.0, 0.0)
+    assert not camera.moving
+    assert world.colour_models['human'] == 'colour:150,0,0,255,80,80'
+
+
+@pytest.mark.parametrize('path', ['test/worlds/small.yaml', 'test/worlds/accuracy.yaml'])
+def test_the_test_worlds_load(path):
+    assert load_world(path).vision_systems
+
+
+@pytest.mark.parametrize(
+    'key, value, message',
+    [
+        ('floor.size', [4.0], 'floor.size: expected 2 positive numbers [x, y], got [4.0]'),
+        (
+            'floor.colour',
+            [60, 60, 60],
+            'floor.colour: [60, 60, 60] is matched by colour_models.obstacle (colour:40,40,40,90,90,90); '
+            'the floor must be a colour that no colour model matches',
+        ),
+        ('robot.speed', 0, 'robot.speed: expected a positive number, got 0'),
+        (
+            'station.colour',
+            [0, 0, 300],
+            'station.colour: expected 3 integers 0-255 [r, g, b], got [0, 0, 300]',
+        ),
+        (
+            'objects.0.size',
+            [0.4, 0.6],
+            'objects[0].size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]',
+        ),
+        ('objects.0.kind', 'robot', "objects[0].kind: expected static or human, got 'robot'"),
+        ('objects.1.speed', None, 'objects[1]: a human needs waypoints (2 or more) and a positive speed'),
+        (
+            'objects.1.waypoints',
+            [[3.0, 0.5]],
+            'objects[1].waypoints: expected a list of at least 2 points [[x, y], ...], got [[3.0, 0.5]]',
+        ),
+        (
+            'objects.0.name',
+            'walker',
+            'objects: names must be unique (and not robot or station), repeated: walker',
+        ),
+        (
+            'vision_systems.0.position',
+            [2.0, 1.5, 0.0],
+            'vision_systems[0].position: expected a camera above the floor (z > 0), got [2.0, 1.5, 0.0]',
+        ),
+        (
+            'vision_systems.0.resolution',
+            [800],
+            'vision_systems[0].resolution: expected 2 integers 16-4096 [width, height], got [800]',
+        ),
+        (
+            'vision_systems.0.fov_deg',
+            180,
+            'vision_systems[0].fov_deg: expected a vertical field of view between 1 and 170 degrees, '
+            'got 180.0',
+        ),
+        (
+            'vision_systems.0.speed',
+            0.5,
+            'vision_systems[0].waypoints: expected a list of at least 2 points ' '[[x, y], ...], got None',
+        ),
+        ('colour_models.human', None, 'colour_models.human: missing (roles: self, station, obstacle, human)'),
+        (
+            'colour_models.self',
+            'colour:1,2',
+            'colour_models.self: algorithm: colour PARAMS must be 6 '
+            "comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, got 2 value(s) in '1,2'",
+        ),
+        (
+            'lights',
+            'on',
+            'unknown key(s) lights; allowed: floor, robot, station, objects, vision_systems, '
+            'colour_models',
+        ),
+    ],
+)
+def test_bad_worlds_are_refused_naming_file_and_key(tmp_path, key, value, message):
+    path = write(tmp_path, changed(key, value))
+    with pytest.raises(WorldError) as error:
+        load_world(path)
+    prefix = f'{path}: ' + ('(top level): ' if key == 'lights' else '')
+    assert str(error.value) == prefix + message
+
+
+def test_a_missing_file_and_bad_yaml_are_named(tmp_path):
+    with pytest.raises(WorldError) as error:
+        load_world(tmp_path / 'none.yaml')
+    assert (
+        str(error.value) == f'{tmp_path / "none.yaml"}: cannot read the world file: No such file or directory'
+    )
+    path = tmp_path / 'bad.yaml'
+    path.write_text('floor: [')
+    with pytest.raises(WorldError) as error:
+        load_world(path)
+    assert str(error.value).startswith(f'{path}: not valid YAML: ')
+
+
+def test_an_unknown_camera_is_named(tmp_path):
+    world = load_world(write(tmp_path, BASE))
+    with pytest.raises(WorldError) as error:
+        world.camera('vs9')
+    assert str(error.value) == f"{world.path}: vision_systems: no entry named 'vs9' (known: vs1)"
