@@ -1,0 +1,407 @@
+"""The blind robot node: perception through DRVS only, D* Lite planning, re-planning (paper, section 4).
+
+The robot has no sensor of its own. It asks DRVS (``/drvs/detect_object_boundary``)
+where it is, where its charging station is and where the obstacles are, with the
+colour models of the world file (roles ``self``, ``station``, ``obstacle``,
+``human``), and DRVS's vision systems call it back on
+``/robot/callback_coordinates`` with outlines in ``map``. It never subscribes
+to anything: no images, no world_sim topic, no ground truth. From the world
+file it reads only the colour models, the floor size, its own size and its
+speed — never where anything is.
+
+Each tick (``~rate`` per second) it asks for itself (whole floor), for the
+station (whole floor, until found, then every ``~station_period``) and, once
+both are known, for obstacles and humans in the box spanned by itself and the
+station plus ``~roi_margin`` (the paper's section 4.3). Callbacks may come from
+several vision systems, in any order, late or twice (:mod:`drvs.perception`).
+Obstacle outlines go into an occupancy grid inflated by ``~robot_radius``
+(:mod:`drvs.occupancy`) and are forgotten ``~obstacle_ttl`` after their vision
+system last reported them; changed cells feed D* Lite, and the controller
+(:mod:`drvs.controller`) drives along the plan, predicting its position between
+fixes from the velocities it commanded.
+
+Parameters (private):
+
+``~world`` (str, required)
+    The world file: colour models, floor size, robot size and speed.
+``~rate`` (float, default 5)
+    Control ticks and DRVS request rounds per second.
+``~resolution`` (float, default 0.05)
+    Occupancy grid cell size, metres.
+``~robot_radius`` (float, default half the diagonal of the robot's footprint)
+    Inflation of obstacles. Half the diagonal (0.212 m for a 0.3 m square) is the
+    circle that contains the body whatever its heading, so the plan stays safe
+    even if the body turns when it bumps into something.
+``~roi_margin`` (float, default 0.75)
+    Metres added around the robot-station box for obstacle requests.
+``~obstacle_ttl`` (float, default 1.5)
+    Seconds after which a vision system's obstacle outlines are forgotten unless
+    it reports again (a vision system that sees nothing does not answer).
+``~goal_tolerance`` (float, default 0.1)
+    Metres from the station's centre at which the robot stops.
+``~fix_timeout`` (float, default 5)
+    Seconds without a new fix of the robot (or, at start, of the station) after
+    which it stops and fails; also how long DRVS may forward the robot's
+    ``self`` request to no vision system before it fails with "no vision system
+    covers the robot".
+``~unreachable_timeout`` (float, default 5)
+    Seconds the station may stay unreachable (a human may move away) before the
+    robot fails.
+``~speed`` (float, default the world's robot speed)
+    Top speed, m/s.
+``~lookahead`` (float, default 0.2), ``~replan_distance`` (float, default 0.3)
+    Path following: metres to the steering point; map changes this close to the
+    remaining path trigger a re-plan.
+``~station_period`` (float, default 2)
+    Seconds between station requests once the station was found.
+``~request_timeout`` (float, default 1)
+    Seconds one DRVS call may take.
+``~drvs_service`` (str, default ``/drvs/detect_object_boundary``)
+``~once`` (bool, default false)
+    Exit when done: code 0 at the station, 1 with the reason logged otherwise.
+
+Services and topics (``~`` = ``/robot`` when run as ``__name:=robot``):
+
+``~callback_coordinates`` (drvs/CallbackCoordinates, served)
+``~cmd_vel`` (geometry_msgs/Twist): ``linear.x``, ``linear.y`` velocity in ``map``.
+``~path`` (nav_msgs/Path, latched): the current plan.
+``~map`` (nav_msgs/OccupancyGrid, latched): 0 free, 99 inflated margin, 100 obstacle.
+``~status`` (std_msgs/String, latched, JSON): state (localising, moving, blocked,
+arriving, arrived, failed), reason, replans, distance_to_goal, position, goal,
+path_length, requests, callbacks, superseded, obstacles, vision_systems.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import rospy
+from geometry_msgs.msg import Pose, PoseStamped, Twist, Vector3
+from nav_msgs.msg import OccupancyGrid, Path
+from std_msgs.msg import String
+
+from drvs.controller import FAILED, FINAL_STATES, Controller, ControllerSettings
+from drvs.occupancy import CostGrid, GridSpec, ObstacleMemory
+from drvs.perception import (
+    LOCALISATION_ROLES,
+    OBSTACLE_ROLES,
+    Perception,
+    PerceptionError,
+    exclude_bodies,
+    merge_outlines,
+    obstacle_roi,
+    whole_floor,
+)
+from drvs.ros.conversions import box_to_msg, polygon_to_points
+from drvs.ros.service_client import ServiceCallError, ServiceClient
+from drvs.srv import (
+    CallbackCoordinates,
+    CallbackCoordinatesResponse,
+    DetectObjectBoundary,
+    DetectObjectBoundaryRequest,
+)
+from drvs.world import load_world
+
+MAX_STAMP_AGE = 2.0
+"""Seconds; a callback stamped older than this (or in the future) is timed by its arrival instead."""
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    world: str
+    rate: float = 5.0
+    resolution: float = 0.05
+    robot_radius: float | None = None
+    roi_margin: float = 0.75
+    obstacle_ttl: float = 1.5
+    goal_tolerance: float = 0.1
+    fix_timeout: float = 5.0
+    unreachable_timeout: float = 5.0
+    speed: float | None = None
+    lookahead: float = 0.2
+    replan_distance: float = 0.3
+    station_period: float = 2.0
+    request_timeout: float = 1.0
+    drvs_service: str = '/drvs/detect_object_boundary'
+    once: bool = False
+
+    POSITIVE = (
+        'rate',
+        'resolution',
+        'obstacle_ttl',
+        'goal_tolerance',
+        'fix_timeout',
+        'unreachable_timeout',
+        'lookahead',
+        'station_period',
+        'request_timeout',
+    )
+
+    def __post_init__(self):
+        for name in self.POSITIVE + ('speed', 'robot_radius', 'roi_margin', 'replan_distance'):
+            value = getattr(self, name)
+            if value is None and name in ('speed', 'robot_radius'):
+                continue
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f'~{name}: expected a number, got {value!r}')
+            if name in self.POSITIVE + ('speed',) and value <= 0:
+                raise ValueError(f'~{name}: must be positive, got {value}')
+            if value < 0:
+                raise ValueError(f'~{name}: must be >= 0, got {value}')
+
+    @classmethod
+    def from_rospy(cls) -> RobotParams:
+        if not rospy.has_param('~world'):
+            raise ValueError('~world: missing (the world file with the colour models)')
+        defaults = cls.__dataclass_fields__
+        values = {name: rospy.get_param(f'~{name}', defaults[name].default) for name in defaults}
+        return cls(**values)
+
+
+class BlindRobot:
+    """Wires DRVS requests and callbacks, the map, the planner and the controller; see the module doc."""
+
+    def __init__(self, params: RobotParams):
+        self.params = params
+        world = load_world(params.world)
+        # Only what a robot may know of the world file: colour models, floor, own size and speed.
+        self.floor_size = world.floor_size
+        self.speed = params.speed or world.robot.speed
+        size = world.robot.size
+        self.robot_radius = (
+            params.robot_radius if params.robot_radius is not None else math.hypot(size[0], size[1]) / 2
+        )
+        self.perception = Perception(world.colour_models)
+        self.memory = ObstacleMemory(params.obstacle_ttl)
+        self.grid = CostGrid(GridSpec(self.floor_size, params.resolution), self.robot_radius)
+        self.settings = ControllerSettings(
+            speed=self.speed,
+            goal_tolerance=params.goal_tolerance,
+            fix_timeout=params.fix_timeout,
+            unreachable_timeout=params.unreachable_timeout,
+            lookahead=params.lookahead,
+            replan_distance=params.replan_distance,
+        )
+        self.controller: Controller | None = None
+        self._lock = threading.Lock()  # guards perception, memory and the counters below
+        self._counts = {'requests': 0, 'callbacks': 0, 'refused_callbacks': 0, 'failed_requests': 0}
+        self._vision_systems: dict[str, int] = {}  # role -> vision systems its last request reached
+        self._no_coverage_since: float | None = None
+        self._covered = False  # whether a self request ever reached a vision system
+        self._started_at = 0.0
+        self._station_asked = -math.inf
+        self._obstacles = 0
+        self._done = threading.Event()
+        self._stop = threading.Event()
+        self._last_path: list | None = None
+        self._last_map_publish = -math.inf
+        self._client: ServiceClient | None = None
+        self._thread: threading.Thread | None = None
+
+    @classmethod
+    def from_params(cls) -> BlindRobot:
+        return cls(RobotParams.from_rospy())
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        self._client = ServiceClient(
+            self.params.drvs_service, DetectObjectBoundary, self.params.request_timeout
+        )
+        self.cmd_vel = rospy.Publisher('~cmd_vel', Twist, queue_size=1)
+        self.path_pub = rospy.Publisher('~path', Path, queue_size=1, latch=True)
+        self.map_pub = rospy.Publisher('~map', OccupancyGrid, queue_size=1, latch=True)
+        self.status_pub = rospy.Publisher('~status', String, queue_size=1, latch=True)
+        self.callback_service = rospy.resolve_name('~callback_coordinates')
+        self._service = rospy.Service('~callback_coordinates', CallbackCoordinates, self._on_callback)
+        self._started_at = rospy.get_time()
+        self.controller = Controller(self.grid, self.settings, now=self._started_at)
+        rospy.on_shutdown(self._stop.set)
+        self._thread = threading.Thread(target=self._loop, name='blind_robot', daemon=True)
+        self._thread.start()
+        rospy.loginfo(
+            'blind robot: radius %.3f m, speed %.2f m/s, asking %s at %.1f Hz',
+            self.robot_radius,
+            self.speed,
+            self.params.drvs_service,
+            self.params.rate,
+        )
+
+    def wait(self) -> int:
+        """With ``~once``: block until done; 0 at the station, 1 on failure. Otherwise until shutdown."""
+        while not rospy.is_shutdown() and not (self.params.once and self._done.is_set()):
+            self._done.wait(0.2)
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        self._halt()
+        if self._client is not None:
+            self._client.close()
+        if self.controller is not None and self.controller.state == FAILED:
+            rospy.logerr('blind robot failed: %s', self.controller.reason)
+            return 1 if self.params.once else 0
+        return 0
+
+    def _halt(self) -> None:
+        try:
+            self.cmd_vel.publish(Twist())
+        except rospy.ROSException as error:  # publishing after shutdown
+            rospy.logdebug('could not publish the stop command: %s', error)
+
+    # -- callbacks from vision systems -----------------------------------------------------
+    def _on_callback(self, req) -> CallbackCoordinatesResponse:
+        received = rospy.get_time()
+        stamp = req.stamp.to_sec()
+        if not (0 < received - stamp < MAX_STAMP_AGE or abs(received - stamp) < 0.05):
+            stamp = received
+        outlines = [polygon_to_points(obj.boundary) for obj in req.objects]
+        with self._lock:
+            self._counts['callbacks'] += 1
+            try:
+                answer = self.perception.accept(
+                    req.algorithm, req.request_id, req.vision_system, stamp, outlines
+                )
+            except PerceptionError as error:
+                self._counts['refused_callbacks'] += 1
+                rospy.logwarn('ignored a callback from %s: %s', req.vision_system or '?', error)
+                return CallbackCoordinatesResponse()
+            if answer is not None and answer.role in OBSTACLE_ROLES:
+                self.memory.observe((answer.role, answer.vision_system), answer.outlines, received)
+        return CallbackCoordinatesResponse()
+
+    # -- requests --------------------------------------------------------------------------
+    def _ask(self, role: str, roi) -> None:
+        with self._lock:
+            request_id = self.perception.requests.issue(role)
+            algorithm = self.perception.algorithms[role]
+            self._counts['requests'] += 1
+        request = DetectObjectBoundaryRequest(
+            algorithm=algorithm,
+            region_of_interest=box_to_msg(roi),
+            callback_service=self.callback_service,
+            request_id=request_id,
+        )
+        try:
+            response = self._client.call(request)
+        except ServiceCallError as error:
+            with self._lock:
+                self._counts['failed_requests'] += 1
+            rospy.logwarn_throttle(5.0, 'DRVS request %s failed: %s', request_id, error)
+            return
+        if not response.accepted:
+            self.controller.fail(f'DRVS refused the {role} request: {response.message}')
+            return
+        self._vision_systems[role] = response.vision_systems
+        if role == 'self':
+            now = rospy.get_time()
+            if response.vision_systems == 0:
+                # Never covered since start: count from the start, as the fix timeout does.
+                since = self._started_at if not self._covered else now
+                self._no_coverage_since = self._no_coverage_since or since
+            else:
+                self._covered = True
+                self._no_coverage_since = None
+
+    def _request_round(self, now: float, fix, station) -> None:
+        floor = whole_floor(self.floor_size)
+        self._ask('self', floor)
+        if station is None or now - self._station_asked >= self.params.station_period:
+            self._station_asked = now
+            self._ask('station', floor)
+        if fix is not None and station is not None:
+            roi = obstacle_roi(
+                self.controller.position or fix.position,
+                station.position,
+                self.params.roi_margin,
+                self.floor_size,
+            )
+            for role in OBSTACLE_ROLES:
+                self._ask(role, roi)
+
+    # -- the control loop ------------------------------------------------------------------
+    def _loop(self) -> None:
+        period = 1.0 / self.params.rate
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            self._tick(rospy.get_time())
+            if self.controller.state in FINAL_STATES:
+                self._done.set()
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay < 0:  # fell behind (a loaded machine): do not try to catch up
+                next_tick, delay = time.monotonic(), 0.0
+            self._stop.wait(delay)
+
+    def _tick(self, now: float) -> None:
+        controller = self.controller
+        with self._lock:
+            fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
+        if controller.state not in FINAL_STATES:
+            self._request_round(now, fix, station)
+        with self._lock:
+            fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
+            sources = self.memory.current(now)
+        self._update_map(now, sources, fix, station)
+        if self._no_coverage_since is not None and now - self._no_coverage_since > self.params.fix_timeout:
+            controller.fail(
+                f'no vision system covers the robot: DRVS forwarded its self request to none '
+                f'for {self.params.fix_timeout:.1f} s'
+            )
+        vx, vy = controller.step(now, fix, station)
+        self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
+        self._publish(now)
+
+    def _update_map(self, now: float, sources, fix, station) -> None:
+        objects = []
+        for role in OBSTACLE_ROLES:
+            merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
+            objects.extend(merged)
+        bodies = [f.outline for f in (fix, station) if f is not None]
+        objects = exclude_bodies(objects, bodies)
+        self._obstacles = len(objects)
+        changes = self.grid.apply(objects)
+        if changes:
+            self.controller.on_map_changed(changes)
+            self._publish_map(now)
+        elif now - self._last_map_publish > 5.0:
+            self._publish_map(now)
+
+    # -- publications ----------------------------------------------------------------------
+    def _publish(self, now: float) -> None:
+        controller = self.controller
+        status = controller.status()
+        with self._lock:
+            status.update(self._counts, superseded=self.perception.superseded)
+        status.update(obstacles=self._obstacles, vision_systems=dict(self._vision_systems), stamp=now)
+        self.status_pub.publish(String(json.dumps(status)))
+        if controller.path is not self._last_path:
+            self._last_path = controller.path
+            self.path_pub.publish(self._path_msg(controller.path))
+
+    def _path_msg(self, points) -> Path:
+        msg = Path()
+        msg.header.frame_id = 'map'
+        msg.header.stamp = rospy.Time.now()
+        for x, y in points:
+            pose = PoseStamped()
+            pose.header = msg.header
+            pose.pose.position.x, pose.pose.position.y = x, y
+            pose.pose.orientation.w = 1.0
+            msg.poses.append(pose)
+        return msg
+
+    def _publish_map(self, now: float) -> None:
+        self._last_map_publish = now
+        spec = self.grid.spec
+        msg = OccupancyGrid()
+        msg.header.frame_id = 'map'
+        msg.header.stamp = rospy.Time.now()
+        msg.info.resolution = spec.resolution
+        msg.info.width, msg.info.height = spec.cols, spec.rows
+        msg.info.origin = Pose()
+        msg.info.origin.orientation.w = 1.0
+        msg.data = self.grid.occupancy().ravel().tolist()
+        self.map_pub.publish(msg)

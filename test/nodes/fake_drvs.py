@@ -1,0 +1,235 @@
+#!/usr/bin/env python3
+"""A scripted fake DRVS for the blind robot's tests: no rendering, no vision systems, no world_sim.
+
+Serves ``~detect_object_boundary`` (run it as ``__name:=drvs``), moves the
+robot body kinematically from ``/robot/cmd_vel`` (velocity in ``map``, capped at
+the world's robot speed, stopped at any object it would touch, counting
+contacts) and answers each request like DRVS would: ``~latency`` seconds later,
+one callback per fake camera that covers the region of interest *and* sees an
+object of the requested colour there (the west camera sees x < 60 % of the
+floor, the east one x > 40 %, so objects in the middle are seen twice, a few
+millimetres apart), in random order, each sent twice when ``~duplicate``.
+The outlines are the objects' true footprints at the time of the request.
+
+Objects named in ``~hidden`` (comma-separated) are absent until the robot comes
+within ``~appear_distance`` metres of them: an obstacle that steps onto its path.
+Humans walk their waypoint loops at their speed.
+
+Parameters: ``~world`` (required), ``~output`` (JSON lines, required),
+``~latency`` (0.15), ``~duplicate`` (true), ``~hidden`` (''),
+``~appear_distance`` (0.9), ``~cameras`` (2; 0 = no vision system covers anything).
+
+Output lines (``kind``): ``request`` (role, request_id, roi, vision_systems),
+``appear`` (name, robot), ``truth`` every 0.2 s (time, robot position,
+contacts, the robot's latest /robot/status as ``status``).
+"""
+
+import json
+import math
+import queue
+import random
+import threading
+import time
+
+import rospy
+from geometry_msgs.msg import Twist
+from shapely.geometry import Point as ShapelyPoint
+from shapely.geometry import Polygon, box
+from std_msgs.msg import String
+
+from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.ros.conversions import msg_to_box, points_to_detected_object
+from drvs.srv import (
+    CallbackCoordinates,
+    CallbackCoordinatesRequest,
+    DetectObjectBoundary,
+    DetectObjectBoundaryResponse,
+)
+from drvs.world import box_footprint, load_world
+
+CMD_TIMEOUT = 0.5
+STEP = 0.02
+
+
+def position_on_loop(waypoints, speed, t):
+    """Where a walker is ``t`` seconds after starting its closed waypoint loop."""
+    legs = list(zip(waypoints, waypoints[1:] + waypoints[:1], strict=True))
+    lengths = [math.dist(a, b) for a, b in legs]
+    s = (speed * t) % sum(lengths)
+    for (a, b), length in zip(legs, lengths, strict=True):
+        if s <= length:
+            f = s / length if length else 0.0
+            return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]))
+        s -= length
+    return waypoints[0]
+
+
+class FakeDrvs:
+    def __init__(self):
+        self.world = load_world(rospy.get_param('~world'))
+        self.output = rospy.get_param('~output')
+        self.latency = float(rospy.get_param('~latency', 0.15))
+        self.duplicate = bool(rospy.get_param('~duplicate', True))
+        self.hidden = {n for n in str(rospy.get_param('~hidden', '')).split(',') if n}
+        self.appear_distance = float(rospy.get_param('~appear_distance', 0.9))
+        fx, fy = self.world.floor_size
+        cameras = int(rospy.get_param('~cameras', 2))
+        self.cameras = {'/fake_west': box(0, 0, 0.6 * fx, fy), '/fake_east': box(0.4 * fx, 0, fx, fy)}
+        self.cameras = dict(list(self.cameras.items())[:cameras])
+        self.jitter = {'/fake_west': 0.004, '/fake_east': -0.004}
+        self.lock = threading.Lock()
+        self.robot = self.world.robot.position
+        self.command = (0.0, 0.0, -math.inf)
+        self.contacts = 0
+        self.touching = False
+        self.started = time.monotonic()
+        self.status = None
+        self.outbox = queue.Queue()
+
+    def record(self, entry):
+        with open(self.output, 'a') as handle:
+            handle.write(json.dumps(entry) + '\n')
+
+    # -- ground truth ------------------------------------------------------------------------
+    def footprints(self):
+        """name -> (role colour, footprint polygon) of every present object, robot and station."""
+        t = time.monotonic() - self.started
+        bodies = {'robot': (self.world.robot, self.robot), 'station': (self.world.station, None)}
+        for obj in self.world.objects:
+            if obj.name in self.hidden:
+                continue
+            position = position_on_loop(list(obj.waypoints), obj.speed, t) if obj.moving else None
+            bodies[obj.name] = (obj, position)
+        return {
+            name: (body.colour, Polygon(box_footprint(position or body.position, body.size[:2], body.yaw)))
+            for name, (body, position) in bodies.items()
+        }
+
+    def step(self, _event):
+        with self.lock:
+            vx, vy, stamp = self.command
+            if time.monotonic() - stamp > CMD_TIMEOUT:
+                vx = vy = 0.0
+            speed = math.hypot(vx, vy)
+            cap = self.world.robot.speed
+            if speed > cap:
+                vx, vy = vx * cap / speed, vy * cap / speed
+            moved = (self.robot[0] + vx * STEP, self.robot[1] + vy * STEP)
+            body = Polygon(box_footprint(moved, self.world.robot.size[:2], 0.0))
+            others = [fp for name, (_, fp) in self.footprints().items() if name not in ('robot', 'station')]
+            touching = any(body.intersects(fp) for fp in others)
+            if touching:
+                self.contacts += 0 if self.touching else 1
+            else:
+                self.robot = moved
+            self.touching = touching
+            for name in sorted(self.hidden):
+                obj = next(o for o in self.world.objects if o.name == name)
+                if math.dist(obj.position, self.robot) <= self.appear_distance:
+                    self.hidden.discard(name)
+                    self.record({'kind': 'appear', 'name': name, 'robot': list(self.robot)})
+
+    def report(self, _event):
+        with self.lock:
+            self.record(
+                {
+                    'kind': 'truth',
+                    'time': time.monotonic() - self.started,
+                    'robot': list(self.robot),
+                    'contacts': self.contacts,
+                    'status': self.status,
+                }
+            )
+
+    # -- DRVS --------------------------------------------------------------------------------
+    def detect(self, req):
+        try:
+            model = parse_algorithm(req.algorithm)
+        except AlgorithmError as error:
+            return DetectObjectBoundaryResponse(accepted=False, message=str(error), vision_systems=0)
+        roi = box(*msg_to_box(req.region_of_interest))
+        role = req.request_id.rpartition('-')[0]
+        captured = rospy.Time.now()
+        with self.lock:
+            seen = [
+                fp
+                for colour, fp in self.footprints().values()
+                if all(lo <= c <= hi for lo, c, hi in zip(model.lower, colour, model.upper, strict=True))
+                and fp.intersects(roi)
+            ]
+        reached = [name for name, coverage in self.cameras.items() if coverage.intersects(roi)]
+        self.record(
+            {
+                'kind': 'request',
+                'role': role,
+                'request_id': req.request_id,
+                'roi': list(msg_to_box(req.region_of_interest)),
+                'vision_systems': len(reached),
+            }
+        )
+        callbacks = []
+        for name in reached:
+            visible = [fp for fp in seen if self.cameras[name].contains(ShapelyPoint(fp.centroid))]
+            if not visible:
+                continue  # selectivity: a vision system that found nothing does not call back
+            shift = self.jitter[name]
+            objects = [
+                points_to_detected_object([(x + shift, y) for x, y in list(fp.exterior.coords)[:-1]])
+                for fp in visible
+            ]
+            callbacks.append(
+                CallbackCoordinatesRequest(
+                    algorithm=req.algorithm,
+                    request_id=req.request_id,
+                    vision_system=name,
+                    stamp=captured,
+                    objects=objects,
+                )
+            )
+        random.shuffle(callbacks)
+        if self.duplicate:
+            callbacks = callbacks + callbacks
+        due = time.monotonic() + self.latency
+        for callback in callbacks:
+            self.outbox.put((due, req.callback_service, callback))
+        return DetectObjectBoundaryResponse(accepted=True, message='', vision_systems=len(reached))
+
+    def deliver(self):
+        """Send callbacks when they are due (one worker: answers leave in the order they were made)."""
+        proxies = {}
+        while not rospy.is_shutdown():
+            try:
+                due, service, callback = self.outbox.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            time.sleep(max(0.0, due - time.monotonic()))
+            try:
+                proxy = proxies.setdefault(service, rospy.ServiceProxy(service, CallbackCoordinates))
+                proxy(callback)
+            except (rospy.ServiceException, rospy.ROSException) as error:
+                proxies.pop(service, None)
+                rospy.logwarn('callback to %s failed: %s', service, error)
+
+    def on_cmd_vel(self, msg):
+        with self.lock:
+            self.command = (msg.linear.x, msg.linear.y, time.monotonic())
+
+    def on_status(self, msg):
+        with self.lock:
+            self.status = json.loads(msg.data)
+
+
+def main():
+    rospy.init_node('drvs')
+    fake = FakeDrvs()
+    rospy.Subscriber('/robot/cmd_vel', Twist, fake.on_cmd_vel, queue_size=1)
+    rospy.Subscriber('/robot/status', String, fake.on_status, queue_size=1)
+    rospy.Timer(rospy.Duration(STEP), fake.step)
+    rospy.Timer(rospy.Duration(0.2), fake.report)
+    threading.Thread(target=fake.deliver, daemon=True).start()
+    rospy.Service('~detect_object_boundary', DetectObjectBoundary, fake.detect)
+    rospy.spin()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,125 @@
+"""The blind robot node against a scripted fake DRVS (test/nodes/fake_drvs.py): no rendering."""
+
+import math
+
+import pytest
+import yaml
+
+from drvs.testing import read_json_lines, wait_for
+
+FLOOR = (3.0, 3.0)
+STATION = (2.6, 1.5)
+MODELS = {
+    'self': 'colour:0,150,0,80,255,80',
+    'station': 'colour:0,0,150,80,80,255',
+    'obstacle': 'colour:40,40,40,90,90,90',
+    'human': 'colour:150,0,0,255,80,80',
+}
+
+
+def write_world(root, objects):
+    world = {
+        'floor': {'size': list(FLOOR)},
+        'robot': {'position': [0.4, 1.5], 'size': [0.3, 0.3, 0.2], 'colour': [0, 200, 0], 'speed': 0.6},
+        'station': {'position': list(STATION), 'size': [0.4, 0.3, 0.1], 'colour': [0, 0, 220]},
+        'objects': objects,
+        'vision_systems': [{'name': 'vs1', 'position': [1.5, 1.5, 3.0], 'fov_deg': 60}],
+        'colour_models': MODELS,
+    }
+    path = root / 'world.yaml'
+    path.write_text(yaml.safe_dump(world))
+    return path
+
+
+def start(ros, world, fake_params=None, robot_params=None):
+    output = ros.root / 'fake_drvs.jsonl'
+    fake = ros.start_node(
+        'test/nodes/fake_drvs.py',
+        name='drvs',
+        params={'world': world, 'output': output, **(fake_params or {})},
+    )
+    ros.wait_for_service('/drvs/detect_object_boundary', node=fake)
+    robot = ros.start_node(
+        'nodes/blind_robot',
+        name='robot',
+        params={'world': world, 'once': True, **(robot_params or {})},
+    )
+    ros.wait_for_service('/robot/callback_coordinates', node=robot)
+    return fake, robot, output
+
+
+def wait_exit(ros, node, timeout):
+    wait_for(lambda: not node.running(), timeout, f'{node.name} to exit', on_timeout=ros.describe)
+    return node.process.returncode
+
+
+def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
+    world = write_world(
+        ros.root,
+        [
+            {'name': 'box1', 'position': [1.3, 0.8], 'size': [0.3, 0.3, 0.5], 'colour': [60, 60, 60]},
+            {'name': 'late', 'position': [1.8, 1.5], 'size': [0.3, 0.6, 0.5], 'colour': [60, 60, 60]},
+            {
+                'name': 'walker',
+                'kind': 'human',
+                'position': [1.0, 2.7],
+                'size': [0.2, 0.2, 1.7],
+                'colour': [220, 0, 0],
+                'waypoints': [[0.6, 2.7], [1.4, 2.7]],
+                'speed': 0.3,
+            },
+        ],
+    )
+    fake, robot, output = start(ros, world, fake_params={'hidden': 'late', 'appear_distance': 0.8})
+    # the robot's only inputs are DRVS callbacks: it subscribes to nothing at all
+    assert ros.master.subscriptions_of('/robot') == []
+    code = wait_exit(ros, robot, 60)
+    assert code == 0, ros.describe()
+    assert 'arrived at the station' in robot.log(200)
+
+    def final_truth():
+        truths = [e for e in read_json_lines(output) if e['kind'] == 'truth']
+        return (
+            truths[-1]
+            if truths and truths[-1]['status'] and truths[-1]['status']['state'] == 'arrived'
+            else None
+        )
+
+    truth = wait_for(final_truth, 10, 'the fake to record the final status')
+    events = read_json_lines(output)
+    assert [e['name'] for e in events if e['kind'] == 'appear'] == ['late']
+    assert math.dist(truth['robot'], STATION) <= 0.1 + 0.05  # tolerance + what happened after the last fix
+    assert truth['contacts'] == 0
+    status = truth['status']
+    assert status['replans'] >= 1
+    assert status['callbacks'] > status['requests'] // 2  # twice-sent answers were all taken in
+
+    requests = [e for e in events if e['kind'] == 'request']
+    whole = [0.0, 0.0, *FLOOR]
+    assert {tuple(e['roi']) for e in requests if e['role'] in ('self', 'station')} == {tuple(whole)}
+    obstacle_rois = [e['roi'] for e in requests if e['role'] in ('obstacle', 'human')]
+    assert obstacle_rois
+    for roi in obstacle_rois:  # the robot-station box plus the margin (0.75 m), never the whole floor
+        assert 0.0 <= roi[0] <= STATION[0] - 0.75
+        assert roi[2] == pytest.approx(FLOOR[0])  # the station's x plus the margin, clipped
+        assert 0.0 < roi[1] <= STATION[1] - 0.75 + 1e-9
+        assert STATION[1] + 0.75 - 1e-9 <= roi[3] < FLOOR[1]
+    assert {e['role'] for e in requests} == {'self', 'station', 'obstacle', 'human'}
+
+
+def test_no_vision_system_covering_the_robot_is_a_failure(ros):
+    world = write_world(ros.root, [])
+    _, robot, _ = start(ros, world, fake_params={'cameras': 0}, robot_params={'fix_timeout': 1.0})
+    assert wait_exit(ros, robot, 30) == 1
+    assert (
+        'no vision system covers the robot: DRVS forwarded its self request to none for 1.0 s'
+        in robot.log(200)
+    )
+
+
+def test_an_unreachable_station_is_a_failure(ros):
+    wall = {'name': 'wall', 'position': [1.8, 1.5], 'size': [0.1, 3.0, 0.5], 'colour': [60, 60, 60]}
+    world = write_world(ros.root, [wall])
+    _, robot, _ = start(ros, world, robot_params={'unreachable_timeout': 1.0})
+    assert wait_exit(ros, robot, 30) == 1
+    assert 'goal unreachable: no way from' in robot.log(200)
