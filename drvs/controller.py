@@ -211,7 +211,8 @@ class Controller:
             return
         self._planner.set_start(start)
         self._planner.compute_shortest_path()
-        if self.path and self._replan:
+        replan = bool(self.path) and self._replan
+        if replan:
             self.replans += 1
         self._replan = False
         cells = self._planner.path()
@@ -220,6 +221,14 @@ class Controller:
             return
         self.path = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
         self._progress = 0
+        log.info(
+            '%s from %s: %d cells, cost %.2f m%s',
+            're-planned' if replan else 'planned',
+            self._where(),
+            len(cells),
+            self._planner.path_cost() * spec.resolution,
+            f' (re-plan {self.replans})' if replan else '',
+        )
 
     def _distance_to_path(self) -> float:
         points = np.asarray(self.path)
@@ -260,7 +269,11 @@ class Controller:
             and _distance(fix.position, self.goal) <= self.settings.goal_tolerance
         ):
             self.state = ARRIVED
-            log.info('arrived at the station: %.3f m from its centre', _distance(fix.position, self.goal))
+            log.info(
+                'arrived at the station: %.3f m from its centre after %d re-plans',
+                _distance(fix.position, self.goal),
+                self.replans,
+            )
         return (0.0, 0.0)
 
     # -- reporting ---------------------------------------------------------------------------

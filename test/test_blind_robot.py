@@ -123,3 +123,24 @@ def test_an_unreachable_station_is_a_failure(ros):
     _, robot, _ = start(ros, world, robot_params={'unreachable_timeout': 1.0})
     assert wait_exit(ros, robot, 30) == 1
     assert 'goal unreachable: no way from' in robot.log(200)
+
+
+def test_ctrl_c_stops_the_robot_cleanly(ros):
+    world = write_world(ros.root, [])
+    _, robot, _ = start(ros, world, robot_params={'once': False})
+    assert robot.interrupt() == 0, robot.describe()
+
+
+@pytest.mark.parametrize(
+    'params, message',
+    [
+        ({'rate': 0}, '~rate: must be positive, got 0'),
+        ({'roi_margin': -1.0}, '~roi_margin: must be >= 0, got -1.0'),
+        ({'world': '/nonexistent.yaml'}, '/nonexistent.yaml: cannot read the world file'),
+    ],
+)
+def test_bad_parameters_are_refused_with_the_reason(ros, params, message):
+    world = write_world(ros.root, [])
+    robot = ros.start_node('nodes/blind_robot', name='robot', params={'world': world, **params})
+    assert wait_exit(ros, robot, 30) == 2
+    assert message in robot.log()
