@@ -18,7 +18,8 @@ Obstacle outlines go into an occupancy grid inflated by ``~robot_radius``
 (:mod:`drvs.occupancy`) and are forgotten ``~obstacle_ttl`` after their vision
 system last reported them; changed cells feed D* Lite, and the controller
 (:mod:`drvs.controller`) drives along the plan, predicting its position between
-fixes from the velocities it commanded.
+fixes from the velocities it commanded. Once arrived or failed it stops moving
+and stops asking DRVS (with ``~once`` it exits).
 
 Parameters (private):
 
