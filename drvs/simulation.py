@@ -93,6 +93,7 @@ class Simulation:
         self.scene = scene if scene is not None else Scene(world)
         self.time = 0.0
         robot = world.robot
+        self.robot_name = robot.name
         self.robot = RobotState(robot.position[0], robot.position[1], robot.yaw)
         self.obstacles = [body.name for body in world.objects]
         self.loops = {
@@ -125,8 +126,12 @@ class Simulation:
 
     def _penetration(self, x: float, y: float) -> dict[str, float]:
         """Depth by which the robot at (x, y) would overlap each obstacle or the floor edge (> 0)."""
-        self.scene.set_pose('robot', x, y, self.robot.yaw)
-        depth = {name: -d for name, d in self.scene.distances('robot', self.obstacles, 0.0).items() if d < 0}
+        self.scene.set_pose(self.robot_name, x, y, self.robot.yaw)
+        depth = {
+            name: -d
+            for name, d in self.scene.distances(self.robot_name, self.obstacles, 0.0).items()
+            if d < 0
+        }
         edge = self._beyond_edge(x, y)
         if edge > 0:
             depth[FLOOR_EDGE] = edge
@@ -163,11 +168,11 @@ class Simulation:
             goal = (start[0] + low * vx * dt, start[1] + low * vy * dt)
         state.travelled += math.dist(start, goal)
         state.x, state.y = goal
-        self.scene.set_pose('robot', state.x, state.y, state.yaw)
+        self.scene.set_pose(self.robot_name, state.x, state.y, state.yaw)
         touching = self._touching()
         if state.blocked:
             touching |= set(self._penetration(goal[0] + vx * dt, goal[1] + vy * dt))
-            self.scene.set_pose('robot', state.x, state.y, state.yaw)
+            self.scene.set_pose(self.robot_name, state.x, state.y, state.yaw)
         new = touching - state.touching
         if new:
             state.contacts += len(new)
@@ -175,7 +180,7 @@ class Simulation:
         state.touching = touching
 
     def _touching(self) -> set[str]:
-        touching = set(self.scene.distances('robot', self.obstacles, TOUCH))
+        touching = set(self.scene.distances(self.robot_name, self.obstacles, TOUCH))
         if self._beyond_edge(self.robot.x, self.robot.y) > -TOUCH:
             touching.add(FLOOR_EDGE)
         return touching
