@@ -105,3 +105,26 @@ def test_interiors_intersect_is_the_documented_rule():
     square = Polygon(UNIT)
     assert interiors_intersect(square, region_geometry((0.5, 0.5, 2, 2)))
     assert not interiors_intersect(square, region_geometry((1, 0, 2, 1)))
+
+
+@pytest.mark.slow
+def test_matching_with_200000_cameras_equals_brute_force():
+    rng = random.Random(7)
+    index = FieldOfViewIndex(background=True, min_rebuild=10**6)  # bulk load, one build
+    registry = Registry(lease=1e9, index=index)
+    fields = {}
+    for n in range(200_000):
+        x, y = rng.uniform(0, 600), rng.uniform(0, 600)
+        fields[f'/vs{n}'] = [(x, y), (x + 2, y + 0.3), (x + 1.8, y + 1.5), (x + 0.1, y + 1.2)]
+        registry.register(f'/vs{n}', fields[f'/vs{n}'])
+    index.rebuild_now()
+    index.min_rebuild = 256
+    for n in range(0, 200_000, 97):  # moves after the build: served from the delta and rebuilds
+        x, y = rng.uniform(0, 600), rng.uniform(0, 600)
+        fields[f'/vs{n}'] = [(x, y), (x + 1, y), (x, y + 1)]
+        registry.register(f'/vs{n}', fields[f'/vs{n}'])
+    for _ in range(30):
+        x, y = rng.uniform(0, 600), rng.uniform(0, 600)
+        box = (x, y, x + 5, y + 5)
+        near = {k: v for k, v in fields.items() if x - 3 <= v[0][0] <= x + 5 and y - 2 <= v[0][1] <= y + 5}
+        assert registry.match(box) == brute_force(near, box)
