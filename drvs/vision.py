@@ -13,6 +13,7 @@ reported where it stands, not where its top appears on a floor-plane projection.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -116,9 +117,13 @@ def draw_detections(frame: Frame, outlines: list[Outline], colour=(255, 0, 255))
 class FrameCache:
     """The last captured frame, shared by requests that arrive within ``max_age`` of its capture.
 
-    ``capture(stamp)`` renders a frame stamped ``stamp`` (the capture time on
-    ``clock``). :meth:`get` is thread-safe: concurrent requests wait for the one
-    render in progress and then reuse it.
+    ``capture(stamp)`` renders a frame stamped ``stamp`` (the capture's start on
+    ``clock``: the state of the world it shows). A request that arrives while a
+    capture is in progress, or at most ``max_age`` seconds after it finished,
+    reuses it. Measuring from the end matters: a render holds the interpreter
+    for its whole duration, so requests that came in during it are only seen,
+    and timestamped, once it is done. :meth:`get` is thread-safe: concurrent
+    requests wait for the one render in progress and then reuse it.
     """
 
     def __init__(
@@ -130,16 +135,16 @@ class FrameCache:
         self.renders = 0
         self.hits = 0
         self._frame: Frame | None = None
+        self._ready_at = -math.inf
         self._lock = threading.Lock()
 
     def get(self, arrival: float) -> tuple[Frame, bool]:
         """A frame for a request that arrived at ``arrival``: (frame, whether it was reused)."""
         with self._lock:
-            frame = self._frame
-            if frame is not None and frame.stamp >= arrival - self.max_age:
+            if self._frame is not None and arrival <= self._ready_at + self.max_age:
                 self.hits += 1
-                return frame, True
-            frame = self.capture(self.clock())
-            self._frame = frame
+                return self._frame, True
+            self._frame = self.capture(self.clock())
+            self._ready_at = self.clock()
             self.renders += 1
-            return frame, False
+            return self._frame, False

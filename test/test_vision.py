@@ -129,13 +129,14 @@ def test_detections_are_drawn_where_they_are_seen(accuracy):
     assert image.shape == frame.rgb.shape and not np.array_equal(image, frame.rgb)
 
 
-def make_cache(max_age=0.1):
+def make_cache(max_age=0.1, render_time=0.0):
     clock = {'now': 100.0}
     camera = PinholeCamera(eye=(0, 0, 1), target=(0, 0, 0), fov_deg=60, width=16, height=12)
     gate = threading.Event()
 
     def capture(stamp):
         gate.wait(5.0)  # hold the first render until every request has arrived
+        clock['now'] += render_time
         return Frame(np.zeros((12, 16, 3), np.uint8), np.ones((12, 16), np.float32), camera, stamp)
 
     return FrameCache(capture, max_age, clock=lambda: clock['now']), clock, gate
@@ -155,12 +156,14 @@ def test_ten_simultaneous_requests_cost_one_render():
 
 
 @pytest.mark.parametrize('later, renders', [(0.05, 1), (0.1, 1), (0.15, 2)])
-def test_a_frame_is_reused_only_within_max_frame_age(later, renders):
-    cache, clock, gate = make_cache(max_age=0.1)
+@pytest.mark.parametrize('render_time', [0.0, 0.3])
+def test_a_frame_is_reused_within_max_frame_age_of_its_capture(later, renders, render_time):
+    """Age counts from the end of the capture: a request seen only after a slow render reuses it."""
+    cache, clock, gate = make_cache(max_age=0.1, render_time=render_time)
     gate.set()
     first, reused = cache.get(clock['now'])
-    assert not reused and first.stamp == 100.0
+    assert not reused and first.stamp == 100.0  # stamped with the capture's start
     clock['now'] += later
     second, _ = cache.get(clock['now'])
     assert cache.renders == renders
-    assert second.stamp == pytest.approx(100.0 if renders == 1 else 100.0 + later)
+    assert second.stamp == pytest.approx(100.0 if renders == 1 else 100.0 + render_time + later)

@@ -365,8 +365,10 @@ class VisionSystemNode:
         renew = self.params.lease / 2.0
         last_ok = None
         retry_at = 0.0
+        footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
         while not self._stopping.wait(0.05):
-            footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
+            if self.config.moving:
+                footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
             now = time.monotonic()
             moved = self._registered is None or _moved(
                 self._registered, footprint, self.params.move_threshold
