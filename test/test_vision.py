@@ -74,6 +74,15 @@ def test_outlines_match_the_true_footprints_at_800x600(accuracy, name):
     assert iou(found, truth) >= 0.9
 
 
+def test_an_object_partly_out_of_view_is_reported_as_the_part_seen(accuracy):
+    world, frames = accuracy
+    edge = Polygon(next(o for o in world.objects if o.name == 'edge').footprint())
+    outlines = locate_objects(frames['vs2'], parse_algorithm(world.colour_models['obstacle']), WHOLE_FLOOR)
+    seen = match(outlines, edge)
+    assert 0.1 < seen.area / edge.area < 0.5  # vs2's image ends across the box
+    assert edge.buffer(0.01).contains(seen)
+
+
 def test_the_depth_buffer_puts_a_tall_box_where_it_stands(accuracy):
     """Without depth (every outline vertex on the floor plane) the 0.5 m box would be misplaced."""
     world, frames = accuracy
