@@ -169,6 +169,14 @@ def test_the_whole_path_from_world_to_robot(graph):
     # The debug view is rendered for a subscriber.
     result = ros.run('rostopic echo -n 1 /vs1/debug_image/width', timeout=30)
     assert result.stdout.split()[0] == '160'
+    assert world_sim.interrupt() == 0
+
+
+def test_a_vision_system_with_no_entry_in_the_world_exits_with_the_reason(ros):
+    node = ros.start_node('nodes/vision_system', name='vs9', params={'world': WORLD})
+    wait_for(lambda: not node.running(), 30, 'vs9 to exit')
+    assert node.process.returncode == 2
+    assert f"{WORLD}: vision_systems: no entry named 'vs9' (known: vs1, vs2, rover)" in node.log()
 
 
 def test_a_vision_system_waits_for_the_server_survives_a_hung_robot_and_unregisters(graph):

@@ -66,6 +66,7 @@ import json
 import queue
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 
 import numpy as np
@@ -315,8 +316,10 @@ class VisionSystemNode:
                 return
             try:
                 self._process(job)
-            except RuntimeError as error:  # shutting down, or the renderer failed
-                rospy.logerr('%s: request %r failed: %s', rospy.get_name(), job.request_id, error)
+            except Exception:  # one request that fails must not take its worker down with it
+                rospy.logerr(
+                    '%s: request %r failed:\n%s', rospy.get_name(), job.request_id, traceback.format_exc()
+                )
 
     def _process(self, job: Job) -> None:
         frame, reused = self.cache.get(job.arrival)
