@@ -56,6 +56,7 @@ class ControllerSettings:
     unreachable_timeout: float = 5.0  # s the goal may stay unreachable before the robot gives up
     lookahead: float = 0.2  # m along the path to the point the robot steers to
     replan_distance: float = 0.3  # m: map changes this close to the remaining path trigger a re-plan
+    route_tolerance: float = 0.15  # m: a repaired path straying further from the old route is a re-plan
     approach_gain: float = 1.5  # 1/s: speed = min(speed, gain * distance to goal) near the goal
     min_speed: float = 0.05  # m/s, so the approach never stalls
 
@@ -88,6 +89,23 @@ class DeadReckoning:
 
 def _distance(a: Point, b: Point) -> float:
     return math.hypot(a[0] - b[0], a[1] - b[1])
+
+
+def route_changed(old: Sequence[Point], new: Sequence[Point], tolerance: float) -> bool:
+    """Whether the new path leaves the old route by more than ``tolerance`` metres somewhere.
+
+    Both are dense polylines (grid cell centres), so vertex distances stand for polyline distances.
+
+    >>> route_changed([(0, 0), (1, 0), (2, 0)], [(0.1, 0.02), (2, 0)], 0.15)
+    False
+    >>> route_changed([(0, 0), (1, 0), (2, 0)], [(0, 0), (1, 0.5), (2, 0)], 0.15)
+    True
+    """
+    if not old:
+        return True
+    a, b = np.asarray(old, dtype=float), np.asarray(new, dtype=float)
+    distances = np.hypot(b[:, None, 0] - a[None, :, 0], b[:, None, 1] - a[None, :, 1])
+    return bool(distances.min(axis=1).max() > tolerance)
 
 
 class Controller:
@@ -211,16 +229,23 @@ class Controller:
             return
         self._planner.set_start(start)
         self._planner.compute_shortest_path()
-        replan = bool(self.path) and self._replan
-        if replan:
-            self.replans += 1
+        repaired = bool(self.path) and self._replan
         self._replan = False
         cells = self._planner.path()
         if not cells or crosses_margin(cells, self.grid.costs):
             self.path = []
             return
+        previous = self.path[self._progress :]
         self.path = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
         self._progress = 0
+        # A repair that leaves the route where it was (a human moving beside it, an outline
+        # a pixel wider) is not a re-plan: only a changed route counts and is logged as one.
+        replan = repaired and route_changed(previous, self.path, self.settings.route_tolerance)
+        if replan:
+            self.replans += 1
+        elif repaired:
+            log.debug('map changed near the path; the route stays')
+            return
         log.info(
             '%s from %s: %d cells, cost %.2f m%s',
             're-planned' if replan else 'planned',

@@ -39,7 +39,7 @@ class RunRecord:
     plans: list[tuple[float, list[tuple[float, float]]]] = field(default_factory=list)  # (t, path)
     replan_points: list[tuple[float, float]] = field(default_factory=list)
     fields_of_view: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
-    grid: np.ndarray | None = None  # the robot's last occupancy grid (rows = y), 0-100 or -1
+    grid: np.ndarray | None = None  # every cell the robot mapped (rows = y), 0-100 or -1, over the run
     grid_origin: tuple[float, float] = (0.0, 0.0)
     grid_resolution: float = 0.05
     vision_systems: dict[str, dict] = field(default_factory=dict)  # name -> stats
@@ -111,6 +111,17 @@ def summary(record: RunRecord, best_length: float) -> dict:
     }
 
 
+def trace(record: RunRecord) -> dict:
+    """The ``trace.json`` content: the run's geometry over time, for tests and later plots."""
+    return {
+        'trajectory': record.trajectory,
+        'plans': [plan for _, plan in record.plans],
+        'replan_points': record.replan_points,
+        'humans': record.humans,
+        'fields_of_view': record.fields_of_view,
+    }
+
+
 def draw(record: RunRecord, path: str | Path) -> None:
     """Write the run's picture: floor, fields of view, obstacles, plans, trajectory, re-plans."""
     import matplotlib
@@ -133,18 +144,24 @@ def draw(record: RunRecord, path: str | Path) -> None:
             record.grid_origin[1],
             record.grid_origin[1] + rows * record.grid_resolution,
         )
-        occupied = np.ma.masked_less(record.grid.astype(float), 50)
+        from matplotlib.colors import ListedColormap
+
+        # Cells the robot ever mapped: 100 = an obstacle outline, 99 = its inflated margin.
+        layers = np.ma.masked_less(record.grid.astype(float), 99)
         axes.imshow(
-            occupied,
+            layers,
             origin='lower',
             extent=extent,
-            cmap='Oranges',
-            vmin=0,
-            vmax=150,
-            alpha=0.6,
+            cmap=ListedColormap(['#fde0c5', '#f08030']),
+            vmin=99,
+            vmax=100,
             interpolation='nearest',
             zorder=1,
         )
+        axes.add_patch(
+            Rectangle((0, 0), 0, 0, facecolor='#f08030', label='detected through DRVS (robot map)')
+        )
+        axes.add_patch(Rectangle((0, 0), 0, 0, facecolor='#fde0c5', label='inflated by the robot radius'))
 
     palette = plt.get_cmap('tab10')
     for i, (name, fov) in enumerate(sorted(record.fields_of_view.items())):

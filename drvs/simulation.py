@@ -45,18 +45,27 @@ def loop_of(start, waypoints) -> list[tuple[float, float]]:
     return loop
 
 
-def position_on_loop(loop, speed: float, elapsed: float) -> tuple[float, float]:
+def position_on_loop(loop, speed: float, elapsed: float, closed: bool = True) -> tuple[float, float]:
     """Where a body that started at ``loop[0]`` is after ``elapsed`` seconds at ``speed`` m/s.
+
+    With ``closed`` false the body walks the points once and stays at the last.
 
     >>> position_on_loop([(0, 0), (2, 0)], 1.0, 3.0)  # out 2 m, back 1 m
     (1.0, 0.0)
+    >>> position_on_loop([(0, 0), (2, 0)], 1.0, 3.0, closed=False)  # out 2 m, then stands
+    (2.0, 0.0)
     """
     if len(loop) < 2 or speed <= 0:
         return loop[0]
-    legs = [(loop[i], loop[(i + 1) % len(loop)]) for i in range(len(loop))]
+    legs = [(loop[i], loop[(i + 1) % len(loop)]) for i in range(len(loop) if closed else len(loop) - 1)]
     lengths = [math.dist(a, b) for a, b in legs]
     total = sum(lengths)
-    distance = (speed * max(elapsed, 0.0)) % total
+    if not closed:
+        distance = min(speed * max(elapsed, 0.0), total)
+        if distance >= total:
+            return (float(loop[-1][0]), float(loop[-1][1]))
+    else:
+        distance = (speed * max(elapsed, 0.0)) % total
     for (a, b), length in zip(legs, lengths, strict=True):
         if distance <= length:
             t = distance / length if length else 0.0
@@ -96,11 +105,9 @@ class Simulation:
         self.robot_name = robot.name
         self.robot = RobotState(robot.position[0], robot.position[1], robot.yaw)
         self.obstacles = [body.name for body in world.objects]
-        self.loops = {
-            body.name: (loop_of(body.position, body.waypoints), body.speed)
-            for body in world.objects
-            if body.moving
-        }
+        self.walkers = [body for body in world.objects if body.moving]
+        self.loops = {body.name: loop_of(body.position, body.waypoints) for body in self.walkers}
+        self.robot_moved_at: float | None = None  # simulated time of the first non-zero command
         self.robot.touching = self._touching()
 
     # -- commands ------------------------------------------------------------------------------
@@ -111,6 +118,8 @@ class Simulation:
         norm = math.hypot(vx, vy)
         if norm > self.world.robot.speed:
             vx, vy = vx * self.world.robot.speed / norm, vy * self.world.robot.speed / norm
+        if norm > 0 and self.robot_moved_at is None:
+            self.robot_moved_at = self.time
         self.robot.command = (vx, vy)
 
     # -- stepping ------------------------------------------------------------------------------
@@ -119,9 +128,13 @@ class Simulation:
         if dt <= 0:
             return
         self.time += dt
-        for name, (loop, speed) in self.loops.items():
-            x, y = position_on_loop(loop, speed, self.time)
-            self.scene.set_pose(name, x, y, self.scene.pose(name)[2])
+        for body in self.walkers:
+            if body.wait_for_robot:
+                elapsed = 0.0 if self.robot_moved_at is None else self.time - self.robot_moved_at
+            else:
+                elapsed = self.time
+            x, y = position_on_loop(self.loops[body.name], body.speed, elapsed, body.loop)
+            self.scene.set_pose(body.name, x, y, self.scene.pose(body.name)[2])
         self._move_robot(dt)
 
     def _penetration(self, x: float, y: float) -> dict[str, float]:

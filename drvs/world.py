@@ -35,6 +35,8 @@ class Body:
     kind: str = 'static'
     waypoints: tuple[tuple[float, float], ...] = ()
     speed: float = 0.0
+    loop: bool = True
+    wait_for_robot: bool = False
 
     @property
     def moving(self) -> bool:
@@ -153,7 +155,18 @@ class _Reader:
             )
 
 
-BODY_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'waypoints', 'speed')
+BODY_KEYS = (
+    'name',
+    'kind',
+    'position',
+    'size',
+    'yaw',
+    'colour',
+    'waypoints',
+    'speed',
+    'loop',
+    'wait_for_robot',
+)
 CAMERA_KEYS = ('name', 'position', 'fov_deg', 'resolution', 'target', 'up', 'waypoints', 'speed')
 
 
@@ -180,6 +193,13 @@ def _body(r: _Reader, data, key: str, default_name: str, moving_allowed: bool) -
         raise WorldError(f'{r.path}: {key}: a human needs waypoints (2 or more) and a positive speed')
     if kind == 'static' and waypoints:
         raise WorldError(f'{r.path}: {key}.waypoints: a static object cannot move; use kind: human')
+    flags = {}
+    for flag, default in (('loop', True), ('wait_for_robot', False)):
+        value = flags[flag] = data.get(flag, default)
+        if not isinstance(value, bool):
+            raise r.fail(f'{key}.{flag}', 'true or false', value)
+        if value != default and kind != 'human':
+            raise WorldError(f'{r.path}: {key}.{flag}: only humans walk; {flag} applies to kind human')
     return Body(
         name=name,
         position=r.vector(data['position'], f'{key}.position', 2, '[x, y]'),
@@ -189,6 +209,7 @@ def _body(r: _Reader, data, key: str, default_name: str, moving_allowed: bool) -
         kind=kind,
         waypoints=waypoints,
         speed=speed,
+        **flags,
     )
 
 

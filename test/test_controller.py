@@ -96,6 +96,15 @@ def test_changes_far_from_the_path_do_not_replan():
     assert sim.controller.replans == 0
 
 
+def test_a_change_beside_the_path_that_keeps_the_route_is_not_a_replan():
+    sim = Sim((0.4, 1.0))
+    sim.run(10, until=lambda s: s.true[0] > 1.0)
+    sim.set_obstacles([box(1.6, 1.3, 1.9, 1.45)])  # 0.3 m beside the straight path: repaired, same route
+    sim.run(20)
+    assert sim.controller.state == ARRIVED
+    assert sim.controller.replans == 0
+
+
 def test_starting_inside_an_inflated_margin_leaves_it_by_the_cheapest_way():
     # an obstacle 5 cm west of the robot: the robot is inside its margin, the way east is free
     sim = Sim((0.5, 1.0), obstacles=[box(0.1, 0.5, 0.3, 1.5)])

@@ -44,9 +44,10 @@ WORLD = {
 
 @pytest.fixture
 def simulation(tmp_path):
-    def make(**robot):
+    def make(walker=None, **robot):
         data = yaml.safe_load(yaml.safe_dump(WORLD))
         data['robot'].update(robot)
+        data['objects'][1].update(walker or {})
         path = tmp_path / 'world.yaml'
         path.write_text(yaml.safe_dump(data))
         sim = Simulation(load_world(path))
@@ -80,6 +81,14 @@ def test_a_loop_is_walked_at_its_speed_and_repeats(elapsed, expected):
     assert position_on_loop(loop, 1.0, elapsed) == pytest.approx(expected)
 
 
+@pytest.mark.parametrize(
+    'elapsed, expected', [(1.0, (1.0, 0.0)), (2.5, (2.0, 0.5)), (3.0, (2.0, 1.0)), (99.0, (2.0, 1.0))]
+)
+def test_a_path_that_does_not_loop_ends_standing_at_its_last_waypoint(elapsed, expected):
+    path = loop_of((0.0, 0.0), [(2.0, 0.0), (2.0, 1.0)])
+    assert position_on_loop(path, 1.0, elapsed, closed=False) == pytest.approx(expected)
+
+
 def test_a_loop_starts_at_the_position_and_goes_back_to_it():
     assert loop_of((0, 0), [(1, 0), (1, 1)]) == [(0, 0), (1, 0), (1, 1)]
     assert loop_of((1, 1), [(1, 1), (2, 2), (1, 1)]) == [(1, 1), (2, 2)]
@@ -91,6 +100,17 @@ def test_humans_walk_their_waypoints_back_and_forth(simulation):
     assert sim.poses()['walker'][:2] == pytest.approx((0.5, 1.5), abs=1e-6)
     run(sim, 4.4)  # down and back: one full loop later
     assert sim.poses()['walker'][:2] == pytest.approx((0.5, 1.5), abs=1e-6)
+
+
+def test_a_walker_waiting_for_the_robot_starts_with_its_first_move_and_stands_at_the_end(simulation):
+    sim = simulation(walker={'wait_for_robot': True, 'loop': False})
+    run(sim, 3.0)
+    assert sim.poses()['walker'][:2] == pytest.approx((0.5, 2.6))  # the robot has not moved yet
+    sim.set_command(0.0, 0.1)
+    run(sim, 2.0)  # 1 m down the 2.2 m leg
+    assert sim.poses()['walker'][:2] == pytest.approx((0.5, 1.6), abs=1e-6)
+    run(sim, 10.0)  # to the end, then it stands
+    assert sim.poses()['walker'][:2] == pytest.approx((0.5, 0.4), abs=1e-6)
 
 
 def test_the_robot_speed_is_capped(simulation):

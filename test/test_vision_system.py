@@ -150,6 +150,9 @@ def test_the_whole_path_from_world_to_robot(graph):
         'stats',
     )
     assert after['requests'] - before['requests'] == 10
+    obstacle = world.colour_models['obstacle']
+    assert after['requests_by_algorithm'][obstacle] - before['requests_by_algorithm'].get(obstacle, 0) == 10
+    assert 'none' not in after['requests_by_algorithm']  # refused requests are not counted by algorithm
     assert (after['renders'] - before['renders'], after['cache_hits'] - before['cache_hits']) == (1, 9)
     assert after['callback_bytes'] > before['callback_bytes']
 

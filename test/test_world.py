@@ -99,6 +99,13 @@ def test_the_test_worlds_load(path):
             'objects[0].size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]',
         ),
         ('objects.0.kind', 'robot', "objects[0].kind: expected static or human, got 'robot'"),
+        ('objects.1.loop', 'no', "objects[1].loop: expected true or false, got 'no'"),
+        ('objects.0.loop', False, 'objects[0].loop: only humans walk; loop applies to kind human'),
+        (
+            'objects.0.wait_for_robot',
+            True,
+            'objects[0].wait_for_robot: only humans walk; wait_for_robot applies to kind human',
+        ),
         ('objects.1.speed', None, 'objects[1]: a human needs waypoints (2 or more) and a positive speed'),
         (
             'objects.1.waypoints',

@@ -4,7 +4,8 @@ It is the scenario's observer, not part of DRVS: it reads ground truth from
 world_sim, the robot's status, plans and map, the server's registry and every
 vision system's traffic counters, samples each node's CPU use, keeps a one-line
 progress report in ``~out/status.line`` (``run_scenario.sh`` shows it), and on
-shutdown writes ``~out/summary.json`` and ``~out/run.png`` (:mod:`drvs.report`).
+shutdown writes ``~out/summary.json``, ``~out/trace.json`` (trajectory,
+plans, re-plan points, humans' paths) and ``~out/run.png`` (:mod:`drvs.report`).
 
 Parameters (private):
 
@@ -35,7 +36,7 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import String
 
-from drvs.report import RunRecord, draw, hindsight_shortest_length, summary
+from drvs.report import RunRecord, draw, hindsight_shortest_length, summary, trace
 from drvs.world import load_world
 
 CLOCK_TICKS = os.sysconf('SC_CLK_TCK')
@@ -117,14 +118,18 @@ class RecorderNode:
             self._status = status
 
     def _on_path(self, msg: PathMsg) -> None:
+        """Keep the first plan and the plan of each re-plan, not every repair of the same route."""
         plan = [(p.pose.position.x, p.pose.position.y) for p in msg.poses]
-        if plan:
-            with self._lock:
+        with self._lock:
+            if plan and len(self.record.plans) <= self.record.replans:
                 self.record.plans.append((time.monotonic() - self._started, plan))
 
     def _on_map(self, msg: OccupancyGrid) -> None:
+        """Accumulate every cell the robot ever mapped as an obstacle: the run's detected objects."""
         grid = np.asarray(msg.data, dtype=np.int8).reshape(msg.info.height, msg.info.width)
         with self._lock:
+            if self.record.grid is not None and self.record.grid.shape == grid.shape:
+                grid = np.maximum(self.record.grid, grid)
             self.record.grid = grid
             self.record.grid_origin = (msg.info.origin.position.x, msg.info.origin.position.y)
             self.record.grid_resolution = msg.info.resolution
@@ -144,6 +149,7 @@ class RecorderNode:
                 'callback_bytes': stats.get('callback_bytes', 0),
                 'renders': stats.get('renders', 0),
                 'cache_hits': stats.get('cache_hits', 0),
+                'requests_by_algorithm': stats.get('requests_by_algorithm', {}),
             }
 
     # -- CPU and progress -------------------------------------------------------------------------
@@ -224,5 +230,6 @@ class RecorderNode:
         best = hindsight_shortest_length(self.world, radius)
         result = summary(record, best)
         (self.out / 'summary.json').write_text(json.dumps(result, indent=2) + '\n')
+        (self.out / 'trace.json').write_text(json.dumps(trace(record)) + '\n')
         draw(record, self.out / 'run.png')
         rospy.loginfo('wrote %s and %s', self.out / 'summary.json', self.out / 'run.png')

@@ -52,7 +52,10 @@ Parameters (private):
     Top speed, m/s.
 ``~lookahead`` (float, default 0.2), ``~replan_distance`` (float, default 0.3)
     Path following: metres to the steering point; map changes this close to the
-    remaining path trigger a re-plan.
+    remaining path trigger a repair of the plan.
+``~route_tolerance`` (float, default 0.15)
+    A repaired plan that strays further than this (metres) from the old route is a
+    re-plan (counted in the status, logged); a repair that keeps the route is not.
 ``~station_period`` (float, default 2)
     Seconds between station requests once the station was found.
 ``~request_timeout`` (float, default 1)
@@ -125,6 +128,7 @@ class RobotParams:
     speed: float | None = None
     lookahead: float = 0.2
     replan_distance: float = 0.3
+    route_tolerance: float = 0.15
     station_period: float = 2.0
     request_timeout: float = 1.0
     drvs_service: str = '/drvs/detect_object_boundary'
@@ -140,6 +144,7 @@ class RobotParams:
         'lookahead',
         'station_period',
         'request_timeout',
+        'route_tolerance',
     )
 
     def __post_init__(self):
@@ -186,6 +191,7 @@ class BlindRobot:
             unreachable_timeout=params.unreachable_timeout,
             lookahead=params.lookahead,
             replan_distance=params.replan_distance,
+            route_tolerance=params.route_tolerance,
         )
         self.controller: Controller | None = None
         self._lock = threading.Lock()  # guards perception, memory and the counters below

@@ -54,7 +54,9 @@ Topics and services:
 ``~stats`` (std_msgs/String JSON, latched)
     ``requests``, ``refused``, ``callbacks``, ``callback_failures``, ``callback_bytes``
     (serialized size of the callbacks sent), ``renders``, ``cache_hits``,
-    ``registrations``, ``objects``; republished when they change.
+    ``registrations``, ``objects``, and ``requests_by_algorithm`` (accepted requests per
+    algorithm string, at most ``MAX_ALGORITHMS_COUNTED`` distinct ones, the rest under
+    ``other``); republished when they change.
 ``~debug_image`` (sensor_msgs/Image, rgb8)
     The view with the detections drawn; rendered only while subscribed.
 """
@@ -91,6 +93,9 @@ from drvs.srv import (
 from drvs.validation import ValidationError, request_fields
 from drvs.vision import FrameCache, draw_detections, locate_objects
 from drvs.world import load_world
+
+MAX_ALGORITHMS_COUNTED = 64
+"""Distinct algorithm strings counted in ``~stats``; callers choose them, so the count is capped."""
 
 
 @dataclass(frozen=True)
@@ -181,7 +186,8 @@ class VisionSystemNode:
             ),
             0,
         )
-        self._stats_lock = threading.Lock()
+        self._stats_lock = threading.Lock()  # guards stats and requests_by_algorithm
+        self.requests_by_algorithm: dict[str, int] = {}
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe
         self._poses_lock = threading.Lock()
         self._poses: dict | None = None
@@ -292,6 +298,7 @@ class VisionSystemNode:
             )
         except (AlgorithmError, ValidationError) as error:
             return self._refuse(request, str(error))
+        self._count_algorithm(request.algorithm)
         job = Job(algorithm, request.algorithm, region, request.callback_service, request.request_id, arrival)
         try:
             self._jobs.put_nowait(job)
@@ -416,9 +423,17 @@ class VisionSystemNode:
                 self.stats[key] += value
         self._publish_stats()
 
+    def _count_algorithm(self, algorithm: str) -> None:
+        with self._stats_lock:
+            counts = self.requests_by_algorithm
+            key = algorithm if algorithm in counts or len(counts) < MAX_ALGORITHMS_COUNTED else 'other'
+            counts[key] = counts.get(key, 0) + 1
+
     def _publish_stats(self) -> None:
         with self._stats_lock:
-            text = json.dumps(self.stats, sort_keys=True)
+            text = json.dumps(
+                {**self.stats, 'requests_by_algorithm': self.requests_by_algorithm}, sort_keys=True
+            )
         self.stats_pub.publish(String(text))
 
     def _debug_loop(self) -> None:
