@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Run one DRVS scenario end to end, without roslaunch.
 #
-#   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master]
+#   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
 # the environment's ROS_MASTER_URI), then drvs_server, world_sim, one
@@ -11,17 +11,20 @@
 # passes, showing one updating line of state, distance to goal, re-plans and
 # elapsed time; then stops everything it started (also on Ctrl-C) and leaves
 # DIR/summary.json and DIR/run.png. Exits 0 only if the robot reached the station.
+# With --stay, DRVS (server, world_sim, vision systems) keeps running after the
+# robot is done, until Ctrl-C, so it can be explored by hand (see the README).
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-usage() { echo "usage: $0 WORLD [--timeout S] [--out DIR] [--external-master]" >&2; exit 2; }
+usage() { echo "usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay]" >&2; exit 2; }
 
-world="" timeout=120 out="" external=0
+world="" timeout=120 out="" external=0 stay=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
     --out) [ $# -ge 2 ] || usage; out=$2; shift 2 ;;
     --external-master) external=1; shift ;;
+    --stay) stay=1; shift ;;
     -h|--help) usage ;;
     -*) echo "run_scenario: unknown option $1" >&2; usage ;;
     *) [ -z "$world" ] || usage; world=$1; shift ;;
@@ -131,6 +134,10 @@ printf '\r\033[K'
 # The recorder writes summary.json and run.png when it is told to stop.
 kill -s INT "$recorder_pid" 2>/dev/null || true
 for _ in $(seq 100); do kill -0 "$recorder_pid" 2>/dev/null || break; sleep 0.1; done
+if [ $stay -eq 1 ] && [ "$result" != crashed ]; then
+  echo "run_scenario: robot $result; DRVS keeps running at $ROS_MASTER_URI until Ctrl-C"
+  while true; do sleep 1; done
+fi
 stop_all
 
 case $result in
