@@ -8,8 +8,10 @@ per camera, the recorder and blind_robot — against the test's private master
 import json
 
 import pytest
-from shapely.geometry import LineString, Point, Polygon
+from shapely.geometry import LineString, Point, Polygon, box
 
+from drvs.camera import PinholeCamera
+from drvs.ros.robot import RobotParams
 from drvs.testing import RosHarness, wait_for
 from drvs.world import load_world
 
@@ -51,6 +53,31 @@ def run_scenario(ros: RosHarness, world: str) -> tuple[int, dict, dict, str]:
     assert summary_path.exists(), f'no summary.json\n{logs}'
     assert (out / 'run.png').read_bytes()[:4] == b'\x89PNG'
     return code, json.loads(summary_path.read_text()), json.loads((out / 'trace.json').read_text()), logs
+
+
+@pytest.mark.parametrize(
+    'path', ['worlds/localisation.yaml', 'worlds/obstacles.yaml', 'worlds/selectivity.yaml']
+)
+def test_the_paper_geometry_vs2_sees_the_robot_vs1_the_station_neither_both(path):
+    world = load_world(path)
+    assert world.robot.position == (0.83, 2.65)
+    assert world.station.position == (5.90, 3.55)
+    views = {c.name: Polygon(PinholeCamera.from_config(c).floor_footprint()) for c in world.vision_systems}
+    robot, station = Polygon(world.robot.footprint()), Polygon(world.station.footprint())
+    assert world.camera('vs2').position[:2] == (2.05, 2.05)
+    assert world.camera('vs1').position[:2] == (4.85, 2.78)
+    assert views['vs2'].contains(robot) and not views['vs2'].intersects(station)
+    assert views['vs1'].contains(station) and not views['vs1'].intersects(robot)
+
+
+def test_selectivity_far_cameras_see_none_of_the_robot_station_box():
+    """vs3 and vs4 stay clear of the obstacle region even with the robot's default margin."""
+    world = load_world('worlds/selectivity.yaml')
+    margin = RobotParams.__dataclass_fields__['roi_margin'].default
+    (x0, y0), (x1, y1) = world.robot.position, world.station.position
+    region = box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)).buffer(margin + 0.3, join_style=2)
+    for far in ('vs3', 'vs4'):
+        assert not Polygon(PinholeCamera.from_config(world.camera(far)).floor_footprint()).intersects(region)
 
 
 def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarness):

@@ -1,0 +1,72 @@
+"""Catkin-free generation of drvs.msg / drvs.srv: idempotent, follows edits, works for a plain install."""
+
+import shutil
+import subprocess
+import sys
+
+from drvs.testing.harness import REPO
+
+
+def copy_project(target):
+    """A copy of the tracked files (as a fresh clone has them), without generated code."""
+    files = subprocess.run(['git', 'ls-files'], cwd=REPO, capture_output=True, text=True, check=True).stdout
+    for name in files.split():
+        source = REPO / name
+        if source.is_file():
+            (target / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target / name)
+    return target
+
+
+def generate(project):
+    subprocess.run([sys.executable, 'setup.py', '--name'], cwd=project, check=True, capture_output=True)
+    return {p.name: p.read_text() for p in sorted((project / 'drvs').glob('*/_[A-Z]*.py'))}
+
+
+def test_generation_is_idempotent_and_follows_an_edited_srv(tmp_path):
+    project = copy_project(tmp_path)
+    first = generate(project)
+    assert set(first) == {
+        '_BoundingBox.py',
+        '_DetectedObject.py',
+        '_CallbackCoordinates.py',
+        '_DetectObjectBoundary.py',
+        '_RegisterVisionService.py',
+    }
+    assert generate(project) == first
+    srv = project / 'srv/DetectObjectBoundary.srv'
+    srv.write_text(srv.read_text().replace('string request_id', 'string request_id\nuint8 priority'))
+    edited = generate(project)
+    assert "'priority'" in edited['_DetectObjectBoundary.py']
+    assert "'priority'" not in first['_DetectObjectBoundary.py']
+
+
+def test_a_plain_pip_install_generates_the_types(tmp_path):
+    project = copy_project(tmp_path / 'project')
+    target = tmp_path / 'site'
+    subprocess.run(
+        [
+            sys.executable,
+            '-m',
+            'pip',
+            'install',
+            '-q',
+            '--no-build-isolation',
+            '--no-deps',
+            '--target',
+            str(target),
+            str(project),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    probe = 'import drvs.srv as s; print(s.__file__, s.DetectObjectBoundary._type)'
+    out = subprocess.run(
+        [sys.executable, '-c', probe],
+        cwd=tmp_path,
+        env={'PYTHONPATH': str(target)},
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == [str(target / 'drvs/srv/__init__.py'), 'drvs/DetectObjectBoundary']
