@@ -107,6 +107,20 @@ start world_sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
 for camera in $cameras; do
   start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
 done
+# The case study starts once DRVS is up: every camera registered with the server.
+"$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
+import json, sys, threading
+import rospy
+from std_msgs.msg import String
+wanted = {f'/{name}/detect_object_boundary' for name in sys.argv[1].split()}
+done = threading.Event()
+def on_registry(msg):
+    if wanted <= {entry['service_name'] for entry in json.loads(msg.data)['vision_systems']}:
+        done.set()
+rospy.init_node('run_scenario_wait', anonymous=True, disable_signals=True)
+rospy.Subscriber('/drvs/registry', String, on_registry)
+sys.exit(0 if done.wait(60.0) else 1)
+EOF
 start recorder "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _world:="$world" _out:="$out"
 start robot "$py" "$root/nodes/blind_robot" __name:=robot _world:="$world" _once:=true
 robot_pid=${pids[-1]} recorder_pid=${pids[-2]}
@@ -130,6 +144,7 @@ while [ $((SECONDS - started)) -lt "${timeout%.*}" ]; do
   sleep 0.5
 done
 printf '\r\033[K'
+finished=$((SECONDS - started))
 
 # The recorder writes summary.json and run.png when it is told to stop.
 kill -s INT "$recorder_pid" 2>/dev/null || true
@@ -141,7 +156,7 @@ fi
 stop_all
 
 case $result in
-  reached) echo "run_scenario: the robot reached the station after $((SECONDS - started)) s" ;;
+  reached) echo "run_scenario: the robot reached the station after $finished s" ;;
   failed) echo "run_scenario: the robot failed: $(tail -n 3 "$out/robot.log" | tr '\n' ' ')" >&2 ;;
   timeout) echo "run_scenario: timed out after $timeout s" >&2 ;;
 esac
