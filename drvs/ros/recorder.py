@@ -193,14 +193,17 @@ class RecorderNode:
 
     def _write_status_line(self) -> None:
         with self._lock:
-            status = self._status
-            distance = status.get('distance_to_goal')
-            line = (
-                f'state {status.get("state", "starting")}' f' | distance to goal {distance:.2f} m'
-                if isinstance(distance, int | float)
-                else f'state {status.get("state", "starting")} | distance to goal ?'
+            distance = self._status.get('distance_to_goal')
+            line = ' | '.join(
+                (
+                    f'state {self._status.get("state", "starting")}',
+                    f'distance to goal {distance:.2f} m'
+                    if isinstance(distance, int | float)
+                    else 'distance to goal ?',
+                    f'replans {self.record.replans}',
+                    f'collisions {self.record.collisions}',
+                )
             )
-            line += f' | replans {self.record.replans} | collisions {self.record.collisions}'
         tmp = self.out / 'status.line.tmp'
         tmp.write_text(line)
         tmp.replace(self.out / 'status.line')

@@ -101,6 +101,7 @@ from drvs.perception import (
     whole_floor,
 )
 from drvs.ros.conversions import box_to_msg, polygon_to_points
+from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
     CallbackCoordinates,
@@ -161,11 +162,7 @@ class RobotParams:
 
     @classmethod
     def from_rospy(cls) -> RobotParams:
-        if not rospy.has_param('~world'):
-            raise ValueError('~world: missing (the world file with the colour models)')
-        defaults = cls.__dataclass_fields__
-        values = {name: rospy.get_param(f'~{name}', defaults[name].default) for name in defaults}
-        return cls(**values)
+        return read_params(cls)
 
 
 class BlindRobot:

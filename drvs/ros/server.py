@@ -57,6 +57,7 @@ from drvs.algorithms import AlgorithmError
 from drvs.dispatch import Busy, Dispatcher
 from drvs.registry import MOVED, NOT_REGISTERED, REGISTERED, RENEWED, UNREGISTERED, Registry
 from drvs.ros.conversions import msg_to_box, polygon_to_points
+from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
 from drvs.srv import (
     CallbackCoordinates,
@@ -97,15 +98,7 @@ class ServerSettings:
     @classmethod
     def from_params(cls) -> ServerSettings:
         """Read every field from the node's private parameters (``~lease`` ...), defaults as above."""
-        values = {}
-        for name, default in cls.__dataclass_fields__.items():
-            kind = type(default.default)
-            value = rospy.get_param('~' + name, default.default)
-            try:
-                values[name] = kind(value)
-            except (TypeError, ValueError):
-                raise ValueError(f'~{name}: expected a {kind.__name__}, got {value!r}') from None
-        return cls(**values)
+        return read_params(cls)
 
 
 def _refuse_register(message: str) -> RegisterVisionServiceResponse:

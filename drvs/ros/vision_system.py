@@ -79,6 +79,7 @@ from std_msgs.msg import String
 from drvs.algorithms import AlgorithmError
 from drvs.camera import PinholeCamera
 from drvs.ros.conversions import msg_to_box, points_to_detected_object, points_to_polygon
+from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame, Scene
 from drvs.simulation import mount_position
@@ -130,26 +131,14 @@ class VisionSystemParams:
 
     @classmethod
     def from_rosparam(cls) -> VisionSystemParams:
-        get = rospy.get_param
-        register_service = get('~register_service', cls.register_service)
-        server = register_service.rsplit('/', 1)[0] or '/'
-        return cls(
-            world=get('~world'),
-            camera=get('~camera', rospy.get_name().rsplit('/', 1)[-1]),
-            min_area=float(get('~min_area', cls.min_area)),
-            epsilon=float(get('~epsilon', cls.epsilon)),
-            max_frame_age=float(get('~max_frame_age', cls.max_frame_age)),
-            callback_timeout=float(get('~callback_timeout', cls.callback_timeout)),
-            workers=int(get('~workers', cls.workers)),
-            queue_size=int(get('~queue_size', cls.queue_size)),
-            register_service=register_service,
-            register_timeout=float(get('~register_timeout', cls.register_timeout)),
-            lease=float(get('~lease', get(server.rstrip('/') + '/lease', cls.lease))),
-            retry_period=float(get('~retry_period', cls.retry_period)),
-            move_threshold=float(get('~move_threshold', cls.move_threshold)),
-            poses_topic=get('~poses_topic', cls.poses_topic),
-            debug_rate=float(get('~debug_rate', cls.debug_rate)),
-        )
+        """Every field from ``~name``; the camera defaults to the node's name, the lease to the server's."""
+        register_service = rospy.get_param('~register_service', cls.register_service)
+        server = register_service.rsplit('/', 1)[0].rstrip('/')
+        defaults = {
+            'camera': rospy.get_name().rsplit('/', 1)[-1],
+            'lease': float(rospy.get_param(server + '/lease', cls.lease)),
+        }
+        return read_params(cls, defaults)
 
 
 @dataclass(frozen=True)

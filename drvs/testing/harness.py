@@ -291,15 +291,6 @@ class RosHarness:
 
         return wait_for(ready, timeout, f'service {service}', on_timeout=self.describe)
 
-    def wait_for_topic(self, topic: str, timeout: float = 30.0) -> None:
-        """Wait until someone publishes ``topic``."""
-        wait_for(
-            lambda: any(name == topic for name, _ in self.master.system_state()[0]),
-            timeout,
-            f'a publisher of {topic}',
-            on_timeout=self.describe,
-        )
-
     def describe(self) -> str:
         """Every process's status and log tail, for failure messages."""
         return '\n'.join(node.describe() for node in self.nodes)
