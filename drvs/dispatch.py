@@ -19,13 +19,18 @@ import threading
 from collections import deque
 from collections.abc import Callable, Hashable, Iterable
 
+from drvs.status import BUSY, Refusal
+
 logger = logging.getLogger('rosout.' + __name__)
 
 __all__ = ['Dispatcher', 'Busy']
 
 
-class Busy(Exception):
-    """The pool cannot take the items now; the message says why."""
+class Busy(Refusal):
+    """The pool cannot take the items now; the message says why, ``retry_after`` when to try again."""
+
+    def __init__(self, message: str, retry_after: float):
+        super().__init__(BUSY, message, retry_after)
 
 
 class Dispatcher:
@@ -35,6 +40,7 @@ class Dispatcher:
     :param workers: number of worker threads.
     :param max_pending: items queued or in flight, in all.
     :param max_per_destination: items queued or in flight for one destination.
+    :param retry_after: seconds a refused caller is told to wait (:class:`Busy`).
     """
 
     def __init__(
@@ -43,6 +49,7 @@ class Dispatcher:
         workers: int = 8,
         max_pending: int = 1000,
         max_per_destination: int = 10,
+        retry_after: float = 0.5,
     ):
         if workers < 1 or max_pending < 1 or max_per_destination < 1:
             raise ValueError('workers, max_pending and max_per_destination must be at least 1')
@@ -50,6 +57,7 @@ class Dispatcher:
         self.workers = workers
         self.max_pending = max_pending
         self.max_per_destination = max_per_destination
+        self.retry_after = retry_after
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._queues: dict[Hashable, deque] = {}
@@ -90,7 +98,7 @@ class Dispatcher:
         destinations = list(destinations)
         with self._lock:
             if self._stopping:
-                raise Busy('the server is shutting down')
+                raise Busy('busy: the server is shutting down; try again later', self.retry_after)
             accepted, skipped = [], []
             for destination in destinations:
                 load = len(self._queues.get(destination, ())) + (destination in self._in_flight)
@@ -98,7 +106,8 @@ class Dispatcher:
             if self._pending + len(accepted) > self.max_pending:
                 raise Busy(
                     f'busy: {self._pending} forwards pending, {len(accepted)} more would pass the limit of '
-                    f'{self.max_pending}; try again later'
+                    f'{self.max_pending}; try again later',
+                    self.retry_after,
                 )
             for destination in accepted:
                 queue = self._queues.setdefault(destination, deque())

@@ -1,17 +1,31 @@
-"""The registry of vision systems: who sees which part of the floor, for how long.
+"""The registry of vision systems: who sees which part of the floor, for how long, through which connection.
 
 Each vision system registers its DetectObjectBoundary service name and its
 field of view (a polygon on the floor, frame ``map``). A registration is a
 lease: it lasts ``lease`` seconds unless renewed by registering again. A moved
 camera registers its new field of view and routing follows at once; an empty
-field of view unregisters. A vision system whose forwards fail ``max_failures``
-times in a row is removed; registering again brings it back.
+field of view unregisters.
+
+Failures and ejection (like Envoy's outlier detection): a vision system whose
+forwards fail ``max_failures`` times in a row is removed, even while it keeps
+renewing: the count resets only on a new registration, a move or a successful
+forward, never on a renewal. A removed one is then *ejected*: its registrations
+are refused (:class:`drvs.status.Refusal`, ``UNAVAILABLE`` with ``retry_after``)
+for ``ejection_time`` times the number of times it was ejected, at most
+``max_ejection_time``, so a wedged camera cannot flap back in at every renewal
+and swallow robots' requests. A successful forward forgets its past ejections.
+
+One entry holds everything the server keeps for a vision system: field of view,
+lease, the node that registered it (``provider``) and the connection the server
+forwards through (``client``, made by the caller's factory). All of it changes
+under one lock, ``Registry._lock``, so a removal is atomic: whoever removes an
+entry gets it back (to close its client) and nobody else can see it half gone.
 
 :meth:`Registry.match` is the paper's Algorithm 1: the vision systems whose
 field of view meets the region of interest, through a spatial index
 (:mod:`drvs.spatial_index`; touching edges do not count). No ROS here: the
 server (:mod:`drvs.ros.server`) checks who may register what and does the
-forwarding. Thread-safe: one lock, ``Registry._lock``, guards the entries.
+forwarding.
 """
 
 from __future__ import annotations
@@ -26,11 +40,12 @@ from dataclasses import dataclass, field
 from shapely.geometry import Polygon
 
 from drvs.spatial_index import FieldOfViewIndex
+from drvs.status import UNAVAILABLE, Refusal
 from drvs.validation import ValidationError, field_of_view_polygon, region_geometry, region_of_interest
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = ['Registration', 'Registry', 'ValidationError']
+__all__ = ['Refusal', 'Registration', 'Registry', 'ValidationError']
 
 REGISTERED, MOVED, RENEWED, UNREGISTERED, NOT_REGISTERED = (
     'registered',
@@ -49,13 +64,17 @@ class Registration:
     field_of_view: tuple[tuple[float, float], ...]
     polygon: Polygon = field(repr=False, compare=False)
     expires_at: float  # on the registry's clock
+    provider: str = ''  # caller id of the node that registered it
+    client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
 
 
 class Registry:
-    """Vision systems by service name, with leases, failure counts and a spatial index.
+    """Vision systems by service name, with leases, failure counts, ejection and a spatial index.
 
     :param lease: seconds a registration lasts unless renewed.
-    :param max_failures: consecutive failed forwards after which an entry is removed.
+    :param max_failures: consecutive failed forwards after which an entry is removed and ejected.
+    :param ejection_time: seconds an ejected vision system is refused, times its ejection count.
+    :param max_ejection_time: cap on one ejection, seconds.
     :param clock: monotonic seconds (injectable for tests).
     :param index: the spatial index (default: a background-rebuilding one).
     """
@@ -66,20 +85,31 @@ class Registry:
         max_failures: int = 3,
         clock: Callable[[], float] = time.monotonic,
         index: FieldOfViewIndex | None = None,
+        ejection_time: float = 10.0,
+        max_ejection_time: float = 300.0,
     ):
         if not lease > 0:
             raise ValueError(f'lease: must be positive, got {lease}')
         if max_failures < 1:
             raise ValueError(f'max_failures: must be at least 1, got {max_failures}')
+        if not 0 <= ejection_time <= max_ejection_time:
+            raise ValueError(
+                f'ejection_time: must be between 0 and max_ejection_time ({max_ejection_time}), '
+                f'got {ejection_time}'
+            )
         self.lease = float(lease)
         self.max_failures = int(max_failures)
+        self.ejection_time = float(ejection_time)
+        self.max_ejection_time = float(max_ejection_time)
         self.clock = clock
         self._lock = threading.Lock()
         self._entries: dict[str, Registration] = {}
         self._failures: dict[str, int] = {}
+        self._ejections: dict[str, tuple[int, float]] = {}  # name -> (times ejected, refused until)
         self._expiries: list[tuple[float, str]] = []  # heap; stale items are skipped
         self._index = index if index is not None else FieldOfViewIndex()
         self.version = 0  # bumped on every change of the listed entries (not on renewals)
+        self.ejected_total = 0
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -95,46 +125,88 @@ class Registry:
         with self._lock:
             return sorted(self._entries.values(), key=lambda entry: entry.service_name)
 
-    def register(self, service_name: str, field_of_view: Sequence[Sequence[float]]) -> str:
+    def register(
+        self,
+        service_name: str,
+        field_of_view: Sequence[Sequence[float]],
+        provider: str = '',
+        make_client: Callable[[str], object] | None = None,
+    ) -> str:
         """Add, move, renew or (with no vertices) remove ``service_name``.
 
         Returns what happened: ``'registered'``, ``'moved'``, ``'renewed'`` (same
         field of view), ``'unregistered'`` or ``'not registered'`` (empty field
-        of view for an unknown name). Any of them resets the failure count.
+        of view for an unknown name). A new registration and a move reset the
+        failure count; a renewal does not. A new entry gets its client from
+        ``make_client(service_name)`` (called under the lock: it must do no I/O);
+        a moved or renewed one keeps its client. An unregistered entry's client
+        is closed by :meth:`unregister`'s caller: use that to remove.
 
         :raises ValidationError: the field of view is not a valid polygon.
+        :raises Refusal: ``UNAVAILABLE``, the vision system is ejected; ``retry_after`` says until when.
         """
         if len(field_of_view) == 0:
-            return UNREGISTERED if self.unregister(service_name) else NOT_REGISTERED
+            removed = self.unregister(service_name)
+            if removed is not None and removed.client is not None:
+                removed.client.close()
+            return UNREGISTERED if removed is not None else NOT_REGISTERED
         polygon = field_of_view_polygon(field_of_view)
         points = tuple((float(p[0]), float(p[1])) for p in field_of_view)
         with self._lock:
-            expires_at = self.clock() + self.lease
+            now = self.clock()
+            self._refuse_if_ejected(service_name, now)
+            expires_at = now + self.lease
             old = self._entries.get(service_name)
+            if old is None:
+                client = make_client(service_name) if make_client is not None else None
+            else:
+                client = old.client
             if old is not None and old.field_of_view == points:
-                self._entries[service_name] = Registration(service_name, points, old.polygon, expires_at)
+                self._entries[service_name] = Registration(
+                    service_name, points, old.polygon, expires_at, provider, client
+                )
                 change = RENEWED
             else:
-                self._entries[service_name] = Registration(service_name, points, polygon, expires_at)
+                self._entries[service_name] = Registration(
+                    service_name, points, polygon, expires_at, provider, client
+                )
                 self._index.insert(service_name, polygon)
                 self.version += 1
+                self._failures[service_name] = 0
                 change = REGISTERED if old is None else MOVED
-            self._failures[service_name] = 0
             heapq.heappush(self._expiries, (expires_at, service_name))
         return change
 
-    def unregister(self, service_name: str) -> bool:
-        """Remove ``service_name``; False if it was not registered."""
+    def _refuse_if_ejected(self, service_name: str, now: float) -> None:
+        times, until = self._ejections.get(service_name, (0, 0.0))
+        if now < until:
+            raise Refusal(
+                UNAVAILABLE,
+                f'service_name: {service_name} was removed after {self.max_failures} failed forwards '
+                f'in a row and is ejected for {until - now:.1f} s more (ejection {times}); '
+                'make its DetectObjectBoundary answer, then register again',
+                until - now,
+            )
+
+    def ejected_until(self, service_name: str) -> float | None:
+        """When ``service_name``'s current ejection ends (registry clock), or None if it is not ejected."""
+        with self._lock:
+            times, until = self._ejections.get(service_name, (0, 0.0))
+            return until if until > self.clock() else None
+
+    def unregister(self, service_name: str) -> Registration | None:
+        """Remove ``service_name``; return its entry (close its client), None if it was not registered."""
         with self._lock:
             return self._remove(service_name)
 
-    def _remove(self, service_name: str) -> bool:
-        if self._entries.pop(service_name, None) is None:
-            return False
+    def _remove(self, service_name: str) -> Registration | None:
+        entry = self._entries.pop(service_name, None)
+        if entry is None:
+            return None
         self._failures.pop(service_name, None)
         self._index.remove(service_name)
         self.version += 1
-        return True
+        return entry
 
     def match(self, region: Sequence[float]) -> list[str]:
         """Service names of the live vision systems whose field of view meets ``region``.
@@ -150,35 +222,44 @@ class Registry:
             live = [key for key in keys if (entry := self._entries.get(key)) and entry.expires_at > now]
         return sorted(live)
 
-    def expire(self) -> list[str]:
-        """Remove every entry whose lease has run out; return their names."""
+    def expire(self) -> list[Registration]:
+        """Remove every entry whose lease has run out; return them (close their clients)."""
         removed = []
         with self._lock:
             now = self.clock()
             while self._expiries and self._expiries[0][0] <= now:
                 expires_at, name = heapq.heappop(self._expiries)
                 entry = self._entries.get(name)
-                if entry is not None and entry.expires_at <= now and self._remove(name):
-                    removed.append(name)
+                if entry is not None and entry.expires_at <= now:
+                    removed.append(self._remove(name))
             if len(self._expiries) > 4 * len(self._entries) + 64:  # renewals leave stale heap items
                 self._expiries = [(e.expires_at, e.service_name) for e in self._entries.values()]
                 heapq.heapify(self._expiries)
+            for name, (_, until) in list(self._ejections.items()):  # bounded: forget old ones
+                if until + self.max_ejection_time < now:
+                    del self._ejections[name]
         return removed
 
     def record_success(self, service_name: str) -> None:
+        """A forward succeeded: the run of failures and past ejections are forgotten."""
         with self._lock:
             if service_name in self._failures:
                 self._failures[service_name] = 0
+            self._ejections.pop(service_name, None)
 
-    def record_failure(self, service_name: str) -> bool:
-        """Count a failed forward; remove the entry at ``max_failures`` in a row. True if removed."""
+    def record_failure(self, service_name: str) -> Registration | None:
+        """Count a failed forward; at ``max_failures`` in a row remove and eject the entry and return it."""
         with self._lock:
             if service_name not in self._failures:
-                return False
+                return None
             self._failures[service_name] += 1
-            if self._failures[service_name] >= self.max_failures:
-                return self._remove(service_name)
-            return False
+            if self._failures[service_name] < self.max_failures:
+                return None
+            times = self._ejections.get(service_name, (0, 0.0))[0] + 1
+            duration = min(self.ejection_time * times, self.max_ejection_time)
+            self._ejections[service_name] = (times, self.clock() + duration)
+            self.ejected_total += 1
+            return self._remove(service_name)
 
     def failures(self, service_name: str) -> int:
         return self._failures.get(service_name, 0)

@@ -19,6 +19,7 @@ APT_PACKAGES=(
   python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-nav-msgs
   python3-opencv python3-numpy python3-shapely python3-yaml
   python3-matplotlib python3-venv python3-pip python3-psutil
+  python3-cachetools python3-hypothesis
 )
 # The test tools and the PyPI wheels, pinned to what the project was checked with.
 PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)

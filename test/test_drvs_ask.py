@@ -45,6 +45,26 @@ def test_drvs_ask_refuses_a_bad_algorithm_before_asking(ros: RosHarness):
 
 
 def test_drvs_ask_says_what_to_do_when_no_server_runs(ros: RosHarness):
-    result = ros.run(f'drvs_ask {STATION}')
+    result = ros.run(f'drvs_ask {STATION} --timeout 1')
     assert result.returncode == 2
     assert 'is DRVS running?' in result.stderr
+
+
+def test_drvs_ask_stops_at_once_on_an_invalid_request(drvs: RosHarness):
+    result = drvs.run(f'drvs_ask {STATION} --roi 2 0 1 1 --timeout 30')
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stdout.splitlines()[0] == (
+        "accepted: False, vision_systems: 0, message: 'region_of_interest: min_x 2 is greater than max_x 1'"
+    )
+    assert 'refused (INVALID)' in result.stderr
+    assert 'retrying' not in result.stderr
+
+
+def test_drvs_ask_retries_while_rate_limited(ros: RosHarness):
+    server = ros.start_node('nodes/drvs_server', name='drvs', params={'max_requests_per_s': 0.2, 'burst': 1})
+    ros.wait_for_service('/drvs/detect_object_boundary', node=server)
+    # Two asks from one caller id: the second, within 5 s, is refused, then retried until served.
+    ask = f'drvs_ask {STATION} --wait 0 --timeout 30 __name:=asker'
+    result = ros.run(f'{ask}; {ask}', timeout=90)
+    assert 'RATE_LIMITED, retrying: rate limited: /asker' in result.stderr, result.stdout + result.stderr
+    assert result.stdout.count("message: 'no vision system covers the region of interest'") == 2

@@ -49,8 +49,8 @@ def square(x, y, side=0.5):
         ),
         (
             DetectObjectBoundaryResponse,
-            ['accepted', 'message', 'vision_systems'],
-            ['bool', 'string', 'uint32'],
+            ['accepted', 'status', 'message', 'vision_systems', 'retry_after'],
+            ['bool', 'uint8', 'string', 'uint32', 'float32'],
         ),
         (
             CallbackCoordinatesRequest,
@@ -62,7 +62,11 @@ def square(x, y, side=0.5):
             ['service_name', 'field_of_view'],
             ['string', 'geometry_msgs/Polygon'],
         ),
-        (RegisterVisionServiceResponse, ['accepted', 'message'], ['bool', 'string']),
+        (
+            RegisterVisionServiceResponse,
+            ['accepted', 'status', 'message', 'lease', 'retry_after'],
+            ['bool', 'uint8', 'string', 'float32', 'float32'],
+        ),
     ],
 )
 def test_fields_match_the_contract(cls, slots, types):
@@ -86,6 +90,10 @@ def test_detect_object_boundary_round_trips():
     assert round_trip(request) == request
     response = DetectObjectBoundaryResponse(accepted=True, message='', vision_systems=2)
     assert round_trip(response) == response
+    refused = DetectObjectBoundaryResponse(
+        accepted=False, status=DetectObjectBoundaryResponse.BUSY, message='busy', retry_after=0.5
+    )
+    assert round_trip(refused) == refused
 
 
 def test_callback_coordinates_round_trips_with_objects():
@@ -112,7 +120,19 @@ def test_register_vision_service_round_trips():
         service_name='/vs1/detect_object_boundary', field_of_view=square(0.0, 0.0, 3.0)
     )
     assert round_trip(request) == request
-    assert (
-        round_trip(RegisterVisionServiceResponse(False, 'polygon has 2 vertices')).message
-        == 'polygon has 2 vertices'
+    response = RegisterVisionServiceResponse(
+        accepted=False, status=RegisterVisionServiceResponse.INVALID, message='polygon has 2 vertices'
     )
+    assert round_trip(response) == response
+    granted = RegisterVisionServiceResponse(accepted=True, lease=10.0)
+    assert round_trip(granted).lease == 10.0
+
+
+@pytest.mark.parametrize('response_class', [DetectObjectBoundaryResponse, RegisterVisionServiceResponse])
+def test_status_constants_match_drvs_status(response_class):
+    """Code without ROS (drvs.status) and the .srv constants that `rossrv show` lists agree."""
+    from drvs import status
+
+    for code, name in status.NAMES.items():
+        assert getattr(response_class, name) == code
+    assert response_class().status == status.ACCEPTED

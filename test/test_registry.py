@@ -4,6 +4,7 @@ import pytest
 
 from drvs.registry import Registry, ValidationError
 from drvs.spatial_index import FieldOfViewIndex
+from drvs.status import UNAVAILABLE, Refusal
 
 
 class Clock:
@@ -16,6 +17,10 @@ class Clock:
 
 def square(x, y, size=1.0):
     return [(x, y), (x + size, y), (x + size, y + size), (x, y + size)]
+
+
+def names(entries):
+    return [entry.service_name for entry in entries]
 
 
 @pytest.fixture
@@ -58,12 +63,12 @@ def test_lease_expires_unless_renewed(registry, clock):
     registry.register('/b', square(0, 0))  # renewed: lasts until now + 10
     clock.now += 4
     assert registry.match((0, 0, 1, 1)) == ['/b']  # /a expired: no more requests, even before expire()
-    assert registry.expire() == ['/a']
+    assert names(registry.expire()) == ['/a']
     assert '/a' not in registry
     clock.now += 5.9
     assert registry.expire() == []
     clock.now += 0.1
-    assert registry.expire() == ['/b']
+    assert names(registry.expire()) == ['/b']
     assert registry.match((0, 0, 1, 1)) == []
 
 
@@ -76,17 +81,93 @@ def test_moved_entry_keeps_its_new_lease(registry, clock):
     assert registry.match((3, 3, 4, 4)) == ['/a']
 
 
-def test_consecutive_failures_remove_and_registering_brings_back(registry):
+def test_consecutive_failures_remove_and_eject(registry, clock):
     registry.register('/a', square(0, 0))
-    assert registry.record_failure('/a') is False
-    assert registry.record_failure('/a') is False
+    assert registry.record_failure('/a') is None
+    assert registry.record_failure('/a') is None
     registry.record_success('/a')  # resets the run of failures
-    assert [registry.record_failure('/a') for _ in range(3)] == [False, False, True]
+    removed = [registry.record_failure('/a') for _ in range(3)]
+    assert removed[:2] == [None, None] and removed[2].service_name == '/a'
     assert '/a' not in registry
-    assert registry.record_failure('/a') is False
+    assert registry.record_failure('/a') is None
+    with pytest.raises(Refusal) as caught:
+        registry.register('/a', square(0, 0))
+    assert (caught.value.status, caught.value.retry_after) == (UNAVAILABLE, 10.0)
+    assert str(caught.value) == (
+        'service_name: /a was removed after 3 failed forwards in a row and is ejected for 10.0 s more '
+        '(ejection 1); make its DetectObjectBoundary answer, then register again'
+    )
+    clock.now += 10
     assert registry.register('/a', square(0, 0)) == 'registered'
     assert registry.failures('/a') == 0
     assert registry.match((0, 0, 1, 1)) == ['/a']
+
+
+def test_renewals_do_not_reset_failures(registry, clock):
+    """A hung camera that keeps renewing is still removed after max_failures forwards."""
+    registry.register('/a', square(0, 0))
+    for _ in range(2):
+        assert registry.record_failure('/a') is None
+        clock.now += 5
+        assert registry.register('/a', square(0, 0)) == 'renewed'
+    assert registry.failures('/a') == 2
+    assert registry.record_failure('/a').service_name == '/a'
+
+
+def test_a_move_resets_failures(registry):
+    registry.register('/a', square(0, 0))
+    registry.record_failure('/a')
+    registry.record_failure('/a')
+    assert registry.register('/a', square(2, 2)) == 'moved'
+    assert registry.failures('/a') == 0
+
+
+def test_ejection_grows_with_each_ejection_up_to_the_cap(clock):
+    registry = Registry(
+        lease=10.0,
+        max_failures=1,
+        clock=clock,
+        index=FieldOfViewIndex(background=False),
+        ejection_time=10.0,
+        max_ejection_time=25.0,
+    )
+    for expected in (10.0, 20.0, 25.0, 25.0):
+        clock.now += 100
+        registry.register('/a', square(0, 0))
+        assert registry.record_failure('/a') is not None
+        assert registry.ejected_until('/a') == clock.now + expected
+        with pytest.raises(Refusal) as caught:
+            registry.register('/a', square(0, 0))
+        assert caught.value.retry_after == expected
+    clock.now += 25
+    registry.register('/a', square(0, 0))
+    registry.record_success('/a')  # a healthy forward forgets past ejections
+    registry.record_failure('/a')
+    assert registry.ejected_until('/a') == clock.now + 10.0
+
+
+def test_entry_keeps_provider_and_one_client_until_removed(registry):
+    made = []
+
+    class Client:
+        closed = False
+
+        def close(self):
+            self.closed = True
+
+    def make_client(name):
+        made.append(Client())
+        return made[-1]
+
+    registry.register('/a', square(0, 0), provider='/vs1', make_client=make_client)
+    registry.register('/a', square(0, 0), provider='/vs1', make_client=make_client)
+    registry.register('/a', square(3, 3), provider='/vs1', make_client=make_client)
+    assert len(made) == 1
+    entry = registry.get('/a')
+    assert (entry.provider, entry.client) == ('/vs1', made[0])
+    assert registry.unregister('/a') is entry and not made[0].closed  # the remover closes it
+    registry.register('/a', square(0, 0), provider='/vs1', make_client=make_client)
+    assert registry.register('/a', []) == 'unregistered' and made[1].closed
 
 
 @pytest.mark.parametrize(

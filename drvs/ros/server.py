@@ -1,13 +1,18 @@
 """The DRVS server node: registry of vision systems, Algorithm 1 matching, concurrent forwarding.
 
-Services (in the node's namespace; run it as ``__name:=drvs``):
+Services (in the node's namespace; run it as ``__name:=drvs``). Every response
+carries a ``status`` (:mod:`drvs.status`): ``ACCEPTED``; ``INVALID`` with a
+message naming the field; or a temporary ``BUSY`` / ``RATE_LIMITED`` /
+``UNAVAILABLE`` with ``retry_after`` seconds.
 
 - ``~register_vision_service`` (drvs/RegisterVisionService): a vision system
   registers, moves (new field of view) or renews its entry; an empty field of
-  view unregisters. Refused, with a message naming the problem, when the
-  polygon is invalid (fewer than 3 vertices, a coordinate not finite, zero
-  area, self-intersecting), the service is unknown to the master or not a
-  drvs/DetectObjectBoundary, or the caller is not the node that provides it.
+  view unregisters. The response grants a ``lease``: renew at half of it.
+  ``INVALID`` when the polygon is invalid (fewer than 3 vertices, a coordinate
+  not finite, zero area, self-intersecting), the service is unknown to the
+  master or not a drvs/DetectObjectBoundary, or the caller is not the node that
+  provides it. ``UNAVAILABLE`` while the vision system is ejected after failed
+  forwards (:mod:`drvs.registry`) or when the master does not answer.
 - ``~detect_object_boundary`` (drvs/DetectObjectBoundary): a robot's request.
   Validated (algorithm through :func:`drvs.algorithms.parse_algorithm`, region
   of interest, callback service: a global name, known to the master, of type
@@ -15,7 +20,14 @@ Services (in the node's namespace; run it as ``__name:=drvs``):
   matching vision system, and acknowledged at once with ``vision_systems`` set.
   Forwards carry every field unchanged; they run on a bounded pool of workers,
   one persistent connection per vision system (:class:`ServiceClient`, re-created
-  after a failure), each call limited to ``~forward_timeout``.
+  after a failure), each call limited to ``~forward_timeout``. ``BUSY`` when the
+  pool is full; ``UNAVAILABLE`` when the master does not answer, or does not list
+  a callback service that it listed within ``~callback_memory`` seconds (a
+  restarted master, before the robot registered again).
+
+Both services limit each caller (its caller id) to ``~max_requests_per_s``
+with bursts of ``~burst`` (a token bucket, :mod:`drvs.rate_limit`); the excess
+is refused with ``RATE_LIMITED``.
 
 Topic: ``~registry`` (std_msgs/String, latched): JSON
 ``{"vision_systems": [{"service_name": ..., "provider": ..., "field_of_view": [[x, y], ...]}, ...]}``
@@ -26,20 +38,33 @@ unregistration, expiry, removal; not renewals), at most once per
 Parameters:
 
 - ``~lease`` (s, default 10): a registration lasts this long unless renewed.
-- ``~max_failures`` (default 3): consecutive failed forwards that remove a vision system.
+- ``~max_failures`` (default 3): consecutive failed forwards that remove a vision
+  system; renewals do not reset the count.
+- ``~ejection_time`` (s, default 10): a removed vision system's registrations are
+  refused for this long times the number of its ejections ...
+- ``~max_ejection_time`` (s, default 300): ... but never longer than this.
 - ``~forward_timeout`` (s, default 2): limit on one forward (connect, send, reply).
 - ``~workers`` (default 8): forwarding threads; a hung vision system holds at most one.
 - ``~max_pending`` (default 1000): forwards queued or running in all; a request
-  that would pass it is refused ("busy: ...") instead of queued.
+  that would pass it is refused with ``BUSY`` instead of queued.
 - ``~max_pending_per_vision_system`` (default 10): a vision system with this
   many forwards waiting is skipped by new requests (not counted in ``vision_systems``).
+- ``~busy_retry_after`` (s, default 0.5): ``retry_after`` of a ``BUSY`` refusal.
+- ``~unavailable_retry_after`` (s, default 1): ``retry_after`` when the master did not answer.
+- ``~max_requests_per_s`` (default 50), ``~burst`` (default 100): the per-caller rate limit.
 - ``~check_timeout`` (s, default 1): limit on each master lookup / service probe
   made to validate a registration or a callback service.
 - ``~callback_cache`` (s, default 5): how long a verified callback service is
   trusted before it is checked again.
+- ``~callback_memory`` (s, default 60): how long a verified callback service that
+  the master stops listing counts as temporarily ``UNAVAILABLE`` rather than ``INVALID``.
 - ``~registry_period`` (s, default 0.2): minimum time between two ``~registry`` messages.
 
-Logs: info for register, move, unregister, expiry and removal; debug per forward.
+Background loops (lease expiry, registry publisher) are guarded
+(:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
+traceback and the loop restarts; one that keeps failing shuts the node down
+with exit code 1. Logs: info for register, move, unregister, expiry, removal and
+ejection; debug per forward.
 """
 
 from __future__ import annotations
@@ -49,16 +74,25 @@ import threading
 import time
 from dataclasses import dataclass
 
+import cachetools
 import rosgraph.names
 import rospy
 from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError
 from drvs.dispatch import Busy, Dispatcher
-from drvs.registry import MOVED, NOT_REGISTERED, REGISTERED, RENEWED, UNREGISTERED, Registry
+from drvs.guard import RESTART, LoopGuard
+from drvs.rate_limit import RateLimiter
+from drvs.registry import MOVED, NOT_REGISTERED, REGISTERED, RENEWED, Registration, Registry
 from drvs.ros.conversions import msg_to_box, polygon_to_points
 from drvs.ros.params import read_params
-from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
+from drvs.ros.service_client import (
+    MasterUnreachable,
+    ServiceCallError,
+    ServiceClient,
+    UnknownService,
+    probe_service,
+)
 from drvs.srv import (
     CallbackCoordinates,
     DetectObjectBoundary,
@@ -67,33 +101,56 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceResponse,
 )
+from drvs.status import ACCEPTED, INVALID, RATE_LIMITED, UNAVAILABLE, Refusal, name
 from drvs.validation import ValidationError, field_of_view_polygon, request_fields, ros_name
 
 __all__ = ['ServerSettings', 'DrvsServer']
+
+MAX_CALLBACKS_REMEMBERED = 10_000
+"""Verified callback services kept; callers choose the names, so the memory is capped."""
 
 
 @dataclass(frozen=True)
 class ServerSettings:
     lease: float = 10.0
     max_failures: int = 3
+    ejection_time: float = 10.0
+    max_ejection_time: float = 300.0
     forward_timeout: float = 2.0
     workers: int = 8
     max_pending: int = 1000
     max_pending_per_vision_system: int = 10
+    busy_retry_after: float = 0.5
+    unavailable_retry_after: float = 1.0
+    max_requests_per_s: float = 50.0
+    burst: int = 100
     check_timeout: float = 1.0
     callback_cache: float = 5.0
+    callback_memory: float = 60.0
     registry_period: float = 0.2
 
     def __post_init__(self):
-        for name in ('lease', 'forward_timeout', 'check_timeout'):
-            if not getattr(self, name) > 0:
-                raise ValueError(f'~{name}: must be positive, got {getattr(self, name)}')
-        for name in ('max_failures', 'workers', 'max_pending', 'max_pending_per_vision_system'):
-            if getattr(self, name) < 1:
-                raise ValueError(f'~{name}: must be at least 1, got {getattr(self, name)}')
-        for name in ('callback_cache', 'registry_period'):
-            if getattr(self, name) < 0:
-                raise ValueError(f'~{name}: must not be negative, got {getattr(self, name)}')
+        for field in (
+            'lease',
+            'forward_timeout',
+            'check_timeout',
+            'max_requests_per_s',
+            'busy_retry_after',
+            'unavailable_retry_after',
+        ):
+            if not getattr(self, field) > 0:
+                raise ValueError(f'~{field}: must be positive, got {getattr(self, field)}')
+        for field in ('max_failures', 'workers', 'max_pending', 'max_pending_per_vision_system', 'burst'):
+            if getattr(self, field) < 1:
+                raise ValueError(f'~{field}: must be at least 1, got {getattr(self, field)}')
+        for field in ('callback_cache', 'callback_memory', 'registry_period', 'ejection_time'):
+            if not getattr(self, field) >= 0:
+                raise ValueError(f'~{field}: must not be negative, got {getattr(self, field)}')
+        if not self.max_ejection_time >= self.ejection_time:
+            raise ValueError(
+                f'~max_ejection_time: must be at least ~ejection_time ({self.ejection_time}), '
+                f'got {self.max_ejection_time}'
+            )
 
     @classmethod
     def from_params(cls) -> ServerSettings:
@@ -101,9 +158,8 @@ class ServerSettings:
         return read_params(cls)
 
 
-def _refuse_register(message: str) -> RegisterVisionServiceResponse:
-    rospy.logwarn('registration refused: %s', message)
-    return RegisterVisionServiceResponse(accepted=False, message=message)
+def _caller(request) -> str:
+    return request._connection_header.get('callerid', '')
 
 
 class DrvsServer:
@@ -111,39 +167,49 @@ class DrvsServer:
 
     def __init__(self, settings: ServerSettings):
         self.settings = settings
-        self.registry = Registry(lease=settings.lease, max_failures=settings.max_failures)
+        self.registry = Registry(
+            lease=settings.lease,
+            max_failures=settings.max_failures,
+            ejection_time=settings.ejection_time,
+            max_ejection_time=settings.max_ejection_time,
+        )
         self.dispatcher = Dispatcher(
             self._forward,
             workers=settings.workers,
             max_pending=settings.max_pending,
             max_per_destination=settings.max_pending_per_vision_system,
+            retry_after=settings.busy_retry_after,
         )
-        self._lock = threading.Lock()  # guards _clients, _providers, _callbacks
-        self._clients: dict[str, ServiceClient] = {}
-        self._providers: dict[str, str] = {}  # service name -> caller id that registered it
-        self._callbacks: dict[str, float] = {}  # verified callback service -> when verified
+        self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
+        self._stopping = threading.Event()
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
+        self._lock = threading.Lock()  # guards _callbacks and refusals
+        # Verified callback service -> when verified; bounded in size and age.
+        self._callbacks = cachetools.TTLCache(
+            maxsize=MAX_CALLBACKS_REMEMBERED, ttl=max(settings.callback_memory, settings.callback_cache, 1e-3)
+        )
+        self.refusals: dict[str, int] = {}  # by status name, for introspection and the tests
         self._changed = threading.Condition()
         self._dirty = True
-        self._stopping = threading.Event()
-        self._threads: list[threading.Thread] = []
         self._registry_publisher = None
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
         self._registry_publisher = rospy.Publisher('~registry', String, queue_size=1, latch=True)
         self.dispatcher.start()
-        for target, name in ((self._expire_loop, 'lease-expiry'), (self._publish_loop, 'registry-publisher')):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
+        self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
         rospy.Service('~register_vision_service', RegisterVisionService, self.handle_register)
         rospy.Service('~detect_object_boundary', DetectObjectBoundary, self.handle_detect)
         rospy.loginfo(
-            'DRVS server ready: lease %g s, max_failures %d, forward_timeout %g s, %d workers',
+            'DRVS server ready: lease %g s, max_failures %d, forward_timeout %g s, %d workers, '
+            'rate limit %g/s (burst %d) per caller',
             self.settings.lease,
             self.settings.max_failures,
             self.settings.forward_timeout,
             self.settings.workers,
+            self.settings.max_requests_per_s,
+            self.settings.burst,
         )
 
     def stop(self) -> None:
@@ -151,113 +217,190 @@ class DrvsServer:
         with self._changed:
             self._changed.notify_all()
         self.dispatcher.stop(timeout=self.settings.forward_timeout + 1.0)
+        for entry in self.registry.entries():
+            self._close(self.registry.unregister(entry.service_name))
+
+    # -- refusals ----------------------------------------------------------------------------
+    def _rate_limit(self, request) -> Refusal | None:
+        caller = _caller(request)
+        wait = self.rate_limiter.take(caller)
+        if wait <= 0:
+            return None
+        return Refusal(
+            RATE_LIMITED,
+            f'rate limited: {caller or "(no caller id)"} sends more than '
+            f'{self.settings.max_requests_per_s:g} requests/s (bursts of {self.settings.burst}); '
+            f'retry after {wait:.3f} s',
+            wait,
+        )
+
+    def _count_refusal(self, refusal: Refusal) -> None:
         with self._lock:
-            clients = list(self._clients.values())
-            self._clients.clear()
-        for client in clients:
-            client.close()
+            key = name(refusal.status)
+            self.refusals[key] = self.refusals.get(key, 0) + 1
+
+    def _refuse_register(self, refusal: Refusal) -> RegisterVisionServiceResponse:
+        self._count_refusal(refusal)
+        log = rospy.logwarn if refusal.status == INVALID else rospy.loginfo
+        log('registration refused (%s): %s', name(refusal.status), refusal.message)
+        return RegisterVisionServiceResponse(
+            accepted=False, status=refusal.status, message=refusal.message, retry_after=refusal.retry_after
+        )
+
+    def _refuse_detect(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
+        self._count_refusal(refusal)
+        rospy.loginfo(
+            'request %r from %s refused (%s): %s',
+            request.request_id,
+            _caller(request) or '?',
+            name(refusal.status),
+            refusal.message,
+        )
+        return DetectObjectBoundaryResponse(
+            accepted=False,
+            status=refusal.status,
+            message=refusal.message,
+            vision_systems=0,
+            retry_after=refusal.retry_after,
+        )
 
     # -- registration ------------------------------------------------------------------------
     def handle_register(self, request) -> RegisterVisionServiceResponse:
-        caller = request._connection_header.get('callerid', '')
+        try:
+            return self._register(request, _caller(request))
+        except Refusal as refusal:
+            return self._refuse_register(refusal)
+
+    def _register(self, request, caller: str) -> RegisterVisionServiceResponse:
+        limited = self._rate_limit(request)
+        if limited:
+            raise limited
         try:
             ros_name('service_name', request.service_name)
         except ValidationError as error:
-            return _refuse_register(str(error))
-        name = rosgraph.names.resolve_name(request.service_name, caller or '/')
+            raise Refusal(INVALID, str(error)) from None
+        service = rosgraph.names.resolve_name(request.service_name, caller or '/')
         points = polygon_to_points(request.field_of_view)
-        with self._lock:
-            provider = self._providers.get(name)
+        entry = self.registry.get(service)
         if not points:
-            if provider is not None and provider != caller:
-                return _refuse_register(
-                    f'service_name: {name} was registered by {provider}; {caller} may not unregister it'
-                )
-            return self._apply(name, points, caller)
+            return self._unregister(service, entry, caller)
         try:
             field_of_view_polygon(points)
         except ValidationError as error:
-            return _refuse_register(f'{error} (service_name {name})')
-        entry = self.registry.get(name)
-        if entry is None or provider != caller:  # a renewal or move by the verified provider skips this
-            problem = self._check_service(
-                'service_name', name, DetectObjectBoundary, provider_must_be=caller or '(no caller id)'
+            raise Refusal(INVALID, f'{error} (service_name {service})') from None
+        if entry is None or entry.provider != caller:  # a renewal or move by the verified provider skips this
+            self._check_service(
+                'service_name', service, DetectObjectBoundary, provider_must_be=caller or '(no caller id)'
             )
-            if problem:
-                return _refuse_register(problem)
-        return self._apply(name, points, caller)
-
-    def _apply(self, name: str, points: list, caller: str) -> RegisterVisionServiceResponse:
         try:
-            change = self.registry.register(name, points)
+            change = self.registry.register(service, points, provider=caller, make_client=self._make_client)
         except ValidationError as error:
-            return _refuse_register(f'{error} (service_name {name})')
-        if change == UNREGISTERED:
-            self._forget(name)
-            rospy.loginfo('unregistered %s (asked by %s)', name, caller)
-        elif change == NOT_REGISTERED:
-            return RegisterVisionServiceResponse(accepted=True, message=f'{name} was not registered')
+            raise Refusal(INVALID, f'{error} (service_name {service})') from None
+        if change == REGISTERED:
+            rospy.loginfo('registered %s by %s: field of view %s', service, caller, points)
+        elif change == MOVED:
+            rospy.loginfo('moved %s: field of view %s', service, points)
         else:
-            with self._lock:
-                self._providers[name] = caller
-                if name not in self._clients:
-                    self._clients[name] = ServiceClient(
-                        name, DetectObjectBoundary, self.settings.forward_timeout, caller_id=rospy.get_name()
-                    )
-            if change == REGISTERED:
-                rospy.loginfo('registered %s by %s: field of view %s', name, caller, points)
-            elif change == MOVED:
-                rospy.loginfo('moved %s: field of view %s', name, points)
-            else:
-                rospy.logdebug('renewed %s', name)
+            rospy.logdebug('renewed %s', service)
         if change != RENEWED:
             self._mark_changed()
-        lease = f'; lease {self.settings.lease:g} s' if change in (REGISTERED, MOVED, RENEWED) else ''
-        return RegisterVisionServiceResponse(accepted=True, message=f'{change} {name}{lease}')
+        return RegisterVisionServiceResponse(
+            accepted=True,
+            status=ACCEPTED,
+            message=f'{change} {service}; lease {self.settings.lease:g} s',
+            lease=self.settings.lease,
+        )
 
-    def _forget(self, name: str) -> None:
-        """Drop everything the server holds for ``name`` once it left the registry."""
-        dropped = self.dispatcher.drop(name)
-        if dropped:
-            rospy.loginfo('dropped %d queued forwards to %s', dropped, name)
-        with self._lock:
-            self._providers.pop(name, None)
-            client = self._clients.pop(name, None)
-        if client is not None:
-            client.close()
-
-    def _check_service(self, field: str, name: str, service_class, provider_must_be: str | None = None):
-        """None if ``name`` is known to the master and of the expected type (and provider); else why not."""
-        try:
-            info = probe_service(name, self.settings.check_timeout, caller_id=rospy.get_name())
-        except ServiceCallError as error:
-            if 'unknown service' in str(error):
-                return f'{field}: {name} is not known to the ROS master'
-            return f'{field}: {name} cannot be reached: {error}'
-        if info.type != service_class._type or info.md5sum != service_class._md5sum:
-            return f'{field}: {name} is of type {info.type or "(unknown)"}, expected {service_class._type}'
-        if provider_must_be is not None and info.provider != provider_must_be:
-            return (
-                f'{field}: {name} is provided by {info.provider}, not by the caller {provider_must_be}; '
-                'a node may register only its own service'
+    def _unregister(
+        self, service: str, entry: Registration | None, caller: str
+    ) -> RegisterVisionServiceResponse:
+        if entry is not None and entry.provider != caller:
+            raise Refusal(
+                INVALID,
+                f'service_name: {service} was registered by {entry.provider}; {caller} may not unregister it',
             )
-        return None
+        removed = self.registry.unregister(service)
+        if removed is None:
+            return RegisterVisionServiceResponse(
+                accepted=True, status=ACCEPTED, message=f'{NOT_REGISTERED}: {service}'
+            )
+        self._close(removed)
+        rospy.loginfo('unregistered %s (asked by %s)', service, caller)
+        self._mark_changed()
+        return RegisterVisionServiceResponse(
+            accepted=True, status=ACCEPTED, message=f'unregistered {service}'
+        )
+
+    def _make_client(self, service: str) -> ServiceClient:
+        return ServiceClient(
+            service, DetectObjectBoundary, self.settings.forward_timeout, caller_id=rospy.get_name()
+        )
+
+    def _close(self, entry: Registration | None) -> None:
+        """Drop what the server still holds for a removed entry: queued forwards, its connection."""
+        if entry is None:
+            return
+        dropped = self.dispatcher.drop(entry.service_name)
+        if dropped:
+            rospy.loginfo('dropped %d queued forwards to %s', dropped, entry.service_name)
+        if entry.client is not None:
+            entry.client.close()
+
+    def _check_service(self, field: str, service: str, service_class, provider_must_be: str | None = None):
+        """Check that ``service`` is known to the master and of the expected type (and provider).
+
+        :raises Refusal: ``INVALID`` naming ``field`` and the problem; ``UNAVAILABLE`` when the
+            master or the service did not answer in time.
+        """
+        try:
+            info = probe_service(service, self.settings.check_timeout, caller_id=rospy.get_name())
+        except UnknownService:
+            raise Refusal(INVALID, f'{field}: {service} is not known to the ROS master') from None
+        except MasterUnreachable as error:
+            raise Refusal(
+                UNAVAILABLE,
+                f'{field}: cannot check {service}: {error}; retry later',
+                self.settings.unavailable_retry_after,
+            ) from None
+        except ServiceCallError as error:
+            raise Refusal(INVALID, f'{field}: {service} cannot be reached: {error}') from None
+        if info.type != service_class._type or info.md5sum != service_class._md5sum:
+            raise Refusal(
+                INVALID,
+                f'{field}: {service} is of type {info.type or "(unknown)"}, expected {service_class._type}',
+            )
+        if provider_must_be is not None and info.provider != provider_must_be:
+            raise Refusal(
+                INVALID,
+                f'{field}: {service} is provided by {info.provider}, not by the caller {provider_must_be}; '
+                'a node may register only its own service',
+            )
 
     # -- requests ----------------------------------------------------------------------------
     def handle_detect(self, request) -> DetectObjectBoundaryResponse:
+        try:
+            return self._detect(request)
+        except Refusal as refusal:
+            return self._refuse_detect(request, refusal)
+
+    def _detect(self, request) -> DetectObjectBoundaryResponse:
+        limited = self._rate_limit(request)
+        if limited:
+            raise limited
         try:
             _, region = request_fields(
                 request.algorithm, msg_to_box(request.region_of_interest), request.callback_service
             )
         except (AlgorithmError, ValidationError) as error:
-            return self._refuse_detect(request, str(error))
-        problem = self._check_callback(request.callback_service)
-        if problem:
-            return self._refuse_detect(request, problem)
+            raise Refusal(INVALID, str(error)) from None
+        self._check_callback(request.callback_service)
         names = self.registry.match(region)
         if not names:
             return DetectObjectBoundaryResponse(
-                accepted=True, message='no vision system covers the region of interest', vision_systems=0
+                accepted=True,
+                status=ACCEPTED,
+                message='no vision system covers the region of interest',
+                vision_systems=0,
             )
         forward = DetectObjectBoundaryRequest(
             algorithm=request.algorithm,
@@ -265,74 +408,79 @@ class DrvsServer:
             callback_service=request.callback_service,
             request_id=request.request_id,
         )
-        try:
-            accepted, skipped = self.dispatcher.submit(names, forward)
-        except Busy as error:
-            return self._refuse_detect(request, str(error))
+        accepted, skipped = self.dispatcher.submit(names, forward)  # raises Busy, a Refusal
         if skipped:
             rospy.logwarn('request %s: skipped busy vision systems %s', request.request_id, skipped)
         if not accepted:
-            return self._refuse_detect(
-                request,
+            raise Busy(
                 f'busy: all {len(names)} vision systems covering the region have '
                 f'{self.settings.max_pending_per_vision_system} forwards pending; try again later',
+                self.settings.busy_retry_after,
             )
         message = f'forwarded to {len(accepted)} vision system{"s" if len(accepted) != 1 else ""}'
         if skipped:
             message += f'; {len(skipped)} busy vision system(s) skipped'
-        return DetectObjectBoundaryResponse(accepted=True, message=message, vision_systems=len(accepted))
-
-    def _refuse_detect(self, request, message: str) -> DetectObjectBoundaryResponse:
-        rospy.loginfo(
-            'request %r from %s refused: %s',
-            request.request_id,
-            request._connection_header.get('callerid', '?'),
-            message,
+        return DetectObjectBoundaryResponse(
+            accepted=True, status=ACCEPTED, message=message, vision_systems=len(accepted)
         )
-        return DetectObjectBoundaryResponse(accepted=False, message=message, vision_systems=0)
 
-    def _check_callback(self, name: str) -> str | None:
+    def _check_callback(self, service: str) -> None:
+        """Check the callback service, trusting a check made within ``~callback_cache`` seconds.
+
+        :raises Refusal: as :meth:`_check_service`, except that a service verified within
+            ``~callback_memory`` seconds and now unknown to the master is ``UNAVAILABLE``
+            (a restarted master that its node has not registered with yet), not ``INVALID``.
+        """
         now = time.monotonic()
         with self._lock:
-            verified = self._callbacks.get(name)
+            verified = self._callbacks.get(service)
         if verified is not None and now - verified < self.settings.callback_cache:
-            return None
-        problem = self._check_service('callback_service', name, CallbackCoordinates)
+            return
+        try:
+            self._check_service('callback_service', service, CallbackCoordinates)
+        except Refusal as refusal:
+            if verified is not None and refusal.status == INVALID:
+                raise Refusal(
+                    UNAVAILABLE,
+                    f'{refusal.message} now, though it was {now - verified:.1f} s ago '
+                    '(a restarted master?); retry later',
+                    self.settings.unavailable_retry_after,
+                ) from None
+            raise
         with self._lock:
-            if problem:
-                self._callbacks.pop(name, None)
-            else:
-                if len(self._callbacks) > 10000:
-                    self._callbacks.clear()
-                self._callbacks[name] = now
-        return problem
+            self._callbacks[service] = now
 
     # -- forwarding (worker threads) ---------------------------------------------------------
-    def _forward(self, name: str, request) -> None:
-        with self._lock:
-            client = self._clients.get(name)
-        if client is None:  # removed while the forward was queued
+    def _forward(self, service: str, request) -> None:
+        entry = self.registry.get(service)
+        if entry is None or entry.client is None:  # removed while the forward was queued
             return
         started = time.monotonic()
         try:
-            answer = client.call(request)
+            answer = entry.client.call(request)
         except ServiceCallError as error:
-            failures = self.registry.failures(name) + 1
+            failures = self.registry.failures(service) + 1
             rospy.logwarn(
-                'forward of %r to %s failed (%d in a row): %s', request.request_id, name, failures, error
+                'forward of %r to %s failed (%d in a row): %s', request.request_id, service, failures, error
             )
-            if self.registry.record_failure(name):
-                rospy.loginfo('removed %s after %d failed forwards in a row', name, failures)
-                self._forget(name)
+            removed = self.registry.record_failure(service)
+            if removed is not None:
+                rospy.logwarn(
+                    'removed %s after %d failed forwards in a row; ejected for %.0f s',
+                    service,
+                    failures,
+                    (self.registry.ejected_until(service) or time.monotonic()) - time.monotonic(),
+                )
+                self._close(removed)
                 self._mark_changed()
             return
-        self.registry.record_success(name)
+        self.registry.record_success(service)
         rospy.logdebug(
-            'forwarded %r to %s in %.1f ms: accepted=%s %s',
+            'forwarded %r to %s in %.1f ms: status %s %s',
             request.request_id,
-            name,
+            service,
             (time.monotonic() - started) * 1000,
-            answer.accepted,
+            name(answer.status),
             answer.message,
         )
 
@@ -340,9 +488,9 @@ class DrvsServer:
     def _expire_loop(self) -> None:
         period = min(self.settings.lease / 4, 0.5)
         while not self._stopping.wait(period):
-            for name in self.registry.expire():
-                rospy.loginfo('lease of %s expired: removed', name)
-                self._forget(name)
+            for entry in self.registry.expire():
+                rospy.loginfo('lease of %s expired: removed', entry.service_name)
+                self._close(entry)
                 self._mark_changed()
 
     def _mark_changed(self) -> None:
@@ -351,25 +499,24 @@ class DrvsServer:
             self._changed.notify()
 
     def _publish_loop(self) -> None:
-        while not self._stopping.is_set():
+        stop = self._stopping
+        while not stop.is_set():
             with self._changed:
-                while not self._dirty and not self._stopping.is_set():
+                while not self._dirty and not stop.is_set():
                     self._changed.wait()
                 self._dirty = False
-            if self._stopping.is_set():
+            if stop.is_set():
                 return
             self._registry_publisher.publish(String(data=self.registry_json()))
-            self._stopping.wait(self.settings.registry_period)
+            stop.wait(self.settings.registry_period)
 
     def registry_json(self) -> str:
-        with self._lock:
-            providers = dict(self._providers)
         return json.dumps(
             {
                 'vision_systems': [
                     {
                         'service_name': entry.service_name,
-                        'provider': providers.get(entry.service_name, ''),
+                        'provider': entry.provider,
                         'field_of_view': [list(point) for point in entry.field_of_view],
                     }
                     for entry in self.registry.entries()

@@ -34,7 +34,15 @@ import rosgraph
 import rosgraph.network
 import rospy
 
-__all__ = ['ServiceCallError', 'ServiceClient', 'ServiceInfo', 'probe_service', 'lookup_service']
+__all__ = [
+    'MasterUnreachable',
+    'ServiceCallError',
+    'ServiceClient',
+    'ServiceInfo',
+    'UnknownService',
+    'lookup_service',
+    'probe_service',
+]
 
 MAX_HEADER_BYTES = 1 << 16
 MAX_RESPONSE_BYTES = 1 << 30
@@ -42,6 +50,14 @@ MAX_RESPONSE_BYTES = 1 << 30
 
 class ServiceCallError(Exception):
     """A call that did not produce a response; the message says which service and what failed."""
+
+
+class MasterUnreachable(ServiceCallError):
+    """The ROS master did not answer in time (it may be restarting): a temporary condition."""
+
+
+class UnknownService(ServiceCallError):
+    """The master answered: it knows no such service."""
 
 
 @dataclass(frozen=True)
@@ -75,16 +91,17 @@ def lookup_service(
 ) -> str:
     """The ``rosrpc://`` URI of ``name`` from the master.
 
-    :raises ServiceCallError: unknown service, or the master did not answer in time.
+    :raises UnknownService: the master knows no such service.
+    :raises MasterUnreachable: the master did not answer in time.
     """
     uri = master_uri or rosgraph.get_master_uri()
     try:
         with xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(max(timeout, 0.001))) as master:
             code, message, value = master.lookupService(caller_id or _caller_id(), name)
     except (OSError, xmlrpc.client.Error) as error:
-        raise ServiceCallError(f'service {name}: cannot ask the master at {uri}: {error}') from None
+        raise MasterUnreachable(f'service {name}: cannot ask the master at {uri}: {error}') from None
     if code != 1:
-        raise ServiceCallError(f'service {name}: unknown service (the master says: {message})')
+        raise UnknownService(f'service {name}: unknown service (the master says: {message})')
     return value
 
 

@@ -8,10 +8,20 @@ frame (rendered, or reused from the frame cache), runs the algorithm, puts the
 outlines on the floor in ``map`` (:mod:`drvs.vision`) and, only if it found at
 least one object, calls the robot back.
 
-Registration: at start (retrying every ``~retry_period`` while the server is not
-up), renewed every half lease, at once when the camera's field of view changes
-(a camera on a moving mount: ``waypoints`` and ``speed`` in its world entry),
-and removed (empty field of view) on a clean shutdown.
+Registration: at start, renewed at half the lease the server grants (its
+response's ``lease``), at once when the camera's field of view changes (a camera
+on a moving mount: ``waypoints`` and ``speed`` in its world entry), and removed
+(empty field of view) on a clean shutdown. While the server is unreachable or
+refuses with a temporary status (``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, e.g.
+ejected after failed forwards) it retries after the response's ``retry_after``,
+with jitter and growing backoff (:func:`drvs.retry.retry_delay`, at most
+``~retry_period`` beyond ``retry_after``); after ``INVALID`` it logs the reason as
+an error and retries every ``~retry_period``.
+
+Background loops (registration, workers, debug view) are guarded
+(:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
+traceback and the loop restarts; one that keeps failing shuts the node down
+(exit code 1).
 
 Parameters (private):
 
@@ -27,18 +37,21 @@ Parameters (private):
     Requests arriving within this many seconds of the last capture reuse it.
 ``~callback_timeout`` (float, default 2.0)
     Seconds a callback to a robot may take; a failed or hung one is logged and dropped.
+``~max_callback_clients`` (int, default 64)
+    Open connections to robots' callback services kept; the least recently used
+    beyond this is closed.
+``~callback_idle`` (float, default 30)
+    Seconds after which an unused connection to a callback service is closed.
 ``~workers`` (int, default 2)
     Threads processing requests.
 ``~queue_size`` (int, default 32)
-    Requests waiting for a worker; beyond it requests are refused (accepted=false).
+    Requests waiting for a worker; beyond it requests are refused with ``BUSY``.
 ``~register_service`` (str, default ``/drvs/register_vision_service``)
     The DRVS server's RegisterVisionService.
 ``~register_timeout`` (float, default 2.0)
     Seconds a registration call may take.
-``~lease`` (float, default: the server's ``lease`` parameter, e.g. ``/drvs/lease``, else 10)
-    The server's lease; registrations are renewed every half lease.
 ``~retry_period`` (float, default 1.0)
-    Seconds between registration attempts while the server is unreachable or refuses.
+    Longest wait between registration attempts beyond the server's ``retry_after``.
 ``~move_threshold`` (float, default 0.01)
     Metres a field-of-view vertex must move before the new field of view is registered.
 ``~poses_topic`` (str, default ``/world_sim/poses``)
@@ -78,6 +91,9 @@ from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError
 from drvs.camera import PinholeCamera
+from drvs.client_cache import ClosingCache
+from drvs.guard import RESTART, LoopGuard
+from drvs.retry import retry_delay
 from drvs.ros.conversions import msg_to_box, points_to_detected_object, points_to_polygon
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
@@ -91,9 +107,14 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceRequest,
 )
+from drvs.status import ACCEPTED, BUSY, INVALID, Refusal, is_temporary
+from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
 from drvs.vision import FrameCache, draw_detections, locate_objects
 from drvs.world import load_world
+
+DEFAULT_LEASE = 10.0
+"""Seconds assumed when a server grants no lease (0): renew every 5 s."""
 
 MAX_ALGORITHMS_COUNTED = 64
 """Distinct algorithm strings counted in ``~stats``; callers choose them, so the count is capped."""
@@ -107,38 +128,32 @@ class VisionSystemParams:
     epsilon: float = 1.0
     max_frame_age: float = 0.1
     callback_timeout: float = 2.0
+    max_callback_clients: int = 64
+    callback_idle: float = 30.0
     workers: int = 2
     queue_size: int = 32
     register_service: str = '/drvs/register_vision_service'
     register_timeout: float = 2.0
-    lease: float = 10.0
     retry_period: float = 1.0
     move_threshold: float = 0.01
     poses_topic: str = '/world_sim/poses'
     debug_rate: float = 1.0
 
     def __post_init__(self):
-        for name in ('callback_timeout', 'register_timeout', 'lease', 'retry_period'):
+        for name in ('callback_timeout', 'callback_idle', 'register_timeout', 'retry_period'):
             if not getattr(self, name) > 0:
                 raise ValueError(f'~{name}: must be positive, got {getattr(self, name)}')
         for name in ('min_area', 'epsilon', 'max_frame_age', 'move_threshold', 'debug_rate'):
             if not getattr(self, name) >= 0:
                 raise ValueError(f'~{name}: must be zero or positive, got {getattr(self, name)}')
-        if self.workers < 1 or self.queue_size < 1:
-            raise ValueError(
-                f'~workers and ~queue_size: must be at least 1, got {self.workers}, {self.queue_size}'
-            )
+        for name in ('workers', 'queue_size', 'max_callback_clients'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'~{name}: must be at least 1, got {getattr(self, name)}')
 
     @classmethod
     def from_rosparam(cls) -> VisionSystemParams:
-        """Every field from ``~name``; the camera defaults to the node's name, the lease to the server's."""
-        register_service = rospy.get_param('~register_service', cls.register_service)
-        server = register_service.rsplit('/', 1)[0].rstrip('/')
-        defaults = {
-            'camera': rospy.get_name().rsplit('/', 1)[-1],
-            'lease': float(rospy.get_param(server + '/lease', cls.lease)),
-        }
-        return read_params(cls, defaults)
+        """Every field from ``~name``; the camera defaults to the node's name."""
+        return read_params(cls, {'camera': rospy.get_name().rsplit('/', 1)[-1]})
 
 
 @dataclass(frozen=True)
@@ -180,12 +195,16 @@ class VisionSystemNode:
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe
         self._poses_lock = threading.Lock()
         self._poses: dict | None = None
-        self._clients_lock = threading.Lock()
-        self._callback_clients: dict[str, ServiceClient] = {}
+        self._callback_clients = ClosingCache(
+            lambda service: ServiceClient(service, CallbackCoordinates, params.callback_timeout),
+            maxsize=params.max_callback_clients,
+            ttl=params.callback_idle,
+        )
         self._jobs: queue.Queue = queue.Queue(maxsize=params.queue_size)
         self._stopping = threading.Event()
-        self._threads: list[threading.Thread] = []
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._registered: list | None = None
+        self.lease: float | None = None  # granted by the server at the last registration
         self._start_time = 0.0
         self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
 
@@ -200,12 +219,12 @@ class VisionSystemNode:
             self.params.register_service, RegisterVisionService, timeout=self.params.register_timeout
         )
         for index in range(self.params.workers):
-            self._spawn(self._work, f'worker{index}')
+            self.guard.spawn(self._work, f'worker{index}', RESTART)
         service = rospy.Service('~detect_object_boundary', DetectObjectBoundary, self._handle_detect)
         self.service_name = service.resolved_name
-        self._spawn(self._registration_loop, 'registration')  # after the service is advertised
+        self.guard.spawn(self._registration_loop, 'registration', RESTART)  # after the service is advertised
         if self.params.debug_rate > 0:
-            self._spawn(self._debug_loop, 'debug')
+            self.guard.spawn(self._debug_loop, 'debug', RESTART)
         rospy.on_shutdown(self.stop)
         self._publish_stats()
         rospy.loginfo(
@@ -220,11 +239,6 @@ class VisionSystemNode:
             self.service_name,
         )
 
-    def _spawn(self, target, name: str) -> None:
-        thread = threading.Thread(target=target, name=name, daemon=True)
-        thread.start()
-        self._threads.append(thread)
-
     def stop(self) -> None:
         """Stop the workers, unregister from the server, release the scene."""
         if self._stopping.is_set():
@@ -235,15 +249,12 @@ class VisionSystemNode:
                 self._jobs.put_nowait(None)
             except queue.Full:
                 break
-        for thread in self._threads:
+        for thread in self.guard.threads:
             thread.join(timeout=self.params.callback_timeout + 1.0)
         if self._registered:
             self._call_register([], 'unregister')
         self._register_client.close()
-        with self._clients_lock:
-            for client in self._callback_clients.values():
-                client.close()
-            self._callback_clients.clear()
+        self._callback_clients.clear()
         with self._scene_lock:
             if self.scene is not None:
                 self.scene.close()
@@ -286,24 +297,39 @@ class VisionSystemNode:
                 request.algorithm, msg_to_box(request.region_of_interest), request.callback_service
             )
         except (AlgorithmError, ValidationError) as error:
-            return self._refuse(request, str(error))
+            return self._refuse(request, Refusal(INVALID, str(error)))
         self._count_algorithm(request.algorithm)
         job = Job(algorithm, request.algorithm, region, request.callback_service, request.request_id, arrival)
         try:
             self._jobs.put_nowait(job)
         except queue.Full:
-            return self._refuse(
-                request, f'busy: {self.params.queue_size} requests are waiting already; try again later'
+            refusal = Refusal(
+                BUSY,
+                f'busy: {self.params.queue_size} requests are waiting already; try again later',
+                self.params.max_frame_age or 0.1,
             )
+            return self._refuse(request, refusal)
         rospy.logdebug(
             '%s: accepted request %r (%s)', rospy.get_name(), request.request_id, request.algorithm
         )
-        return DetectObjectBoundaryResponse(accepted=True, message='', vision_systems=1)
+        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message='', vision_systems=1)
 
-    def _refuse(self, request, message: str) -> DetectObjectBoundaryResponse:
+    def _refuse(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
         self._count(refused=1)
-        rospy.loginfo('%s: refused request %r: %s', rospy.get_name(), request.request_id, message)
-        return DetectObjectBoundaryResponse(accepted=False, message=message, vision_systems=0)
+        rospy.loginfo(
+            '%s: refused request %r (%s): %s',
+            rospy.get_name(),
+            request.request_id,
+            status_name(refusal.status),
+            refusal.message,
+        )
+        return DetectObjectBoundaryResponse(
+            accepted=False,
+            status=refusal.status,
+            message=refusal.message,
+            vision_systems=0,
+            retry_after=refusal.retry_after,
+        )
 
     def _work(self) -> None:
         while not self._stopping.is_set():
@@ -344,13 +370,7 @@ class VisionSystemNode:
         )
         buffer = io.BytesIO()
         request.serialize(buffer)
-        with self._clients_lock:
-            client = self._callback_clients.get(job.callback_service)
-            if client is None:
-                client = ServiceClient(
-                    job.callback_service, CallbackCoordinates, self.params.callback_timeout
-                )
-                self._callback_clients[job.callback_service] = client
+        client = self._callback_clients.get(job.callback_service)
         try:
             client.call(request)
         except ServiceCallError as error:
@@ -361,9 +381,9 @@ class VisionSystemNode:
 
     # -- registration --------------------------------------------------------------------------
     def _registration_loop(self) -> None:
-        renew = self.params.lease / 2.0
         last_ok = None
         retry_at = 0.0
+        attempt = 0
         footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
         while not self._stopping.wait(0.05):
             if self.config.moving:
@@ -372,17 +392,21 @@ class VisionSystemNode:
             moved = self._registered is None or _moved(
                 self._registered, footprint, self.params.move_threshold
             )
-            due = moved or last_ok is None or now - last_ok >= renew
+            due = moved or last_ok is None or now - last_ok >= (self.lease or DEFAULT_LEASE) / 2.0
             if not due or now < retry_at:
                 continue
             what = 'register' if self._registered is None else 'move' if moved else 'renew'
-            if self._call_register(footprint, what):
+            wait = self._call_register(footprint, what)
+            if wait is None:
                 self._registered = footprint
                 last_ok = now
+                attempt = 0
             else:
-                retry_at = now + self.params.retry_period
+                retry_at = now + retry_delay(wait, attempt, cap=self.params.retry_period)
+                attempt += 1
 
-    def _call_register(self, footprint, what: str) -> bool:
+    def _call_register(self, footprint, what: str) -> float | None:
+        """Register ``footprint`` (empty: unregister); None on success, else the server's retry_after."""
         request = RegisterVisionServiceRequest(
             service_name=self.service_name, field_of_view=points_to_polygon(footprint)
         )
@@ -390,20 +414,34 @@ class VisionSystemNode:
             response = self._register_client.call(request)
         except ServiceCallError as error:
             rospy.logwarn_throttle(10.0, '%s: waiting for the DRVS server (%s)', rospy.get_name(), error)
-            return False
-        if not response.accepted:
-            rospy.logwarn('%s: %s refused: %s', rospy.get_name(), what, response.message)
-            return False
+            return 0.0
+        if response.status != ACCEPTED:
+            if is_temporary(response.status):
+                rospy.logwarn_throttle(
+                    10.0,
+                    '%s: %s refused for now (%s, retry after %.1f s): %s',
+                    rospy.get_name(),
+                    what,
+                    status_name(response.status),
+                    response.retry_after,
+                    response.message,
+                )
+                return max(float(response.retry_after), 0.0)
+            rospy.logerr('%s: %s refused: %s', rospy.get_name(), what, response.message)
+            return self.params.retry_period
+        if response.lease > 0:
+            self.lease = float(response.lease)
         if what != 'renew':
             rospy.loginfo(
-                '%s: %s %s with field of view %s',
+                '%s: %s %s with field of view %s (lease %s s)',
                 rospy.get_name(),
                 what,
                 self.service_name,
                 [(round(x, 3), round(y, 3)) for x, y in footprint],
+                f'{self.lease:g}' if self.lease else '-',
             )
         self._count(registrations=1)
-        return True
+        return None
 
     # -- introspection -------------------------------------------------------------------------
     def _count(self, **increments) -> None:

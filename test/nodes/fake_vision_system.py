@@ -89,7 +89,10 @@ def main():
                         'field_of_view': fov,
                         'service_name': service_name,
                         'accepted': answer.accepted,
+                        'status': answer.status,
                         'message': answer.message,
+                        'lease': answer.lease,
+                        'retry_after': answer.retry_after,
                     }
                 )
                 last, last_time = fov, now

@@ -1,0 +1,143 @@
+"""A bounded cache of open connections that closes what it evicts.
+
+The server keeps a persistent ROS service client per caller's callback
+service. Callers come and go; each client holds a socket and, in rospy, a
+thread, so a plain dict would grow file descriptors and threads without
+bound. :class:`ClosingCache` keeps at most ``maxsize`` values, drops those
+idle for longer than ``ttl`` seconds and the least recently used beyond
+``maxsize``, and *closes* every value it drops, so resources stay flat
+however many distinct callers there are.
+
+Hand-written on :class:`collections.OrderedDict` rather than
+``cachetools.TTLCache``: in cachetools 5.2, ``TTLCache.expire()`` removes
+expired items without reporting them, so they could not be closed. The
+dict is kept in least-recently-used order, and as every use also stamps
+the time, the idle entries are always at its front.
+
+Values are closed outside the lock: closing a client may block until its
+in-flight call finishes, and must not stall every other caller. A
+``close`` that raises is logged with its traceback; the cache goes on.
+Thread-safe: one lock, ``ClosingCache._lock``, guards the entries;
+``factory`` runs under it (so it is called once per key while cached) and
+must therefore be quick — build the client, do not connect.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
+from typing import Generic, TypeVar
+
+logger = logging.getLogger('rosout.' + __name__)
+
+__all__ = ['ClosingCache']
+
+K = TypeVar('K', bound=Hashable)
+V = TypeVar('V')
+
+
+def _close(value) -> None:
+    value.close()
+
+
+class ClosingCache(Generic[K, V]):
+    """At most ``maxsize`` values by key, each closed when dropped.
+
+    :param factory: makes the value for a key not cached.
+    :param maxsize: the most values kept; the least recently used goes first.
+    :param ttl: seconds a value may stay unused before it is dropped.
+    :param clock: monotonic seconds (injectable for tests).
+    :param close: closes a dropped value (default: ``value.close()``).
+    """
+
+    def __init__(
+        self,
+        factory: Callable[[K], V],
+        maxsize: int,
+        ttl: float,
+        clock: Callable[[], float] = time.monotonic,
+        close: Callable[[V], None] = _close,
+    ):
+        if maxsize < 1:
+            raise ValueError(f'maxsize: must be at least 1, got {maxsize}')
+        if not ttl > 0:
+            raise ValueError(f'ttl: must be positive, got {ttl}')
+        self.factory = factory
+        self.maxsize = int(maxsize)
+        self.ttl = float(ttl)
+        self.clock = clock
+        self.close = close
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[K, tuple[V, float]] = OrderedDict()  # key -> (value, last use)
+        self.evictions = 0  # values dropped for idleness or size (not by pop or clear)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._entries
+
+    def get(self, key: K) -> V:
+        """The value for ``key``, cached or new from ``factory``; then drop idle and excess values."""
+        dropped: list[tuple[K, V]] = []
+        try:
+            with self._lock:
+                now = self.clock()
+                self._drop_idle(now, dropped)  # first, so an idle value is replaced, not reused
+                entry = self._entries.get(key)
+                if entry is not None:
+                    value = entry[0]
+                    self._entries.move_to_end(key)
+                else:
+                    value = self.factory(key)
+                self._entries[key] = (value, now)
+                while len(self._entries) > self.maxsize:
+                    old_key, (old_value, _) = self._entries.popitem(last=False)
+                    dropped.append((old_key, old_value))
+                    self.evictions += 1
+        finally:
+            self._close_all(dropped)
+        return value
+
+    def pop(self, key: K) -> bool:
+        """Close and remove ``key``'s value; False if it was not cached."""
+        with self._lock:
+            entry = self._entries.pop(key, None)
+        if entry is None:
+            return False
+        self._close_all([(key, entry[0])])
+        return True
+
+    def expire(self) -> int:
+        """Close and remove the values idle for longer than ``ttl``; return how many."""
+        dropped: list[tuple[K, V]] = []
+        with self._lock:
+            self._drop_idle(self.clock(), dropped)
+        self._close_all(dropped)
+        return len(dropped)
+
+    def clear(self) -> None:
+        """Close and remove every value."""
+        with self._lock:
+            dropped = [(key, value) for key, (value, _) in self._entries.items()]
+            self._entries.clear()
+        self._close_all(dropped)
+
+    def _drop_idle(self, now: float, dropped: list[tuple[K, V]]) -> None:
+        while self._entries:
+            key, (value, last_use) = next(iter(self._entries.items()))
+            if now - last_use <= self.ttl:
+                break
+            del self._entries[key]
+            dropped.append((key, value))
+            self.evictions += 1
+
+    def _close_all(self, dropped: list[tuple[K, V]]) -> None:
+        for key, value in dropped:
+            try:
+                self.close(value)
+            except Exception:
+                logger.exception('closing the cached value for %r failed', key)
