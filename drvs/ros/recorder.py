@@ -36,6 +36,7 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import String
 
+from drvs.guard import RESTART, LoopGuard
 from drvs.report import RunRecord, draw, hindsight_shortest_length, summary, trace
 from drvs.world import load_world
 
@@ -68,6 +69,8 @@ class RecorderNode:
         self._last_trace: tuple[float, float] | None = None
         self._robot_position: tuple[float, float] | None = None
         self._written = False
+        # The sampler asks the master for every node: it fails while a master restarts; it restarts.
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), restart_delay=1.0)
 
     def start(self) -> None:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -81,7 +84,7 @@ class RecorderNode:
                 f'/{camera.name}/stats', String, self._on_stats, callback_args=camera.name, queue_size=5
             )
         rospy.on_shutdown(self.finish)
-        threading.Thread(target=self._sample_loop, name='cpu-sampler', daemon=True).start()
+        self.guard.spawn(self._sample_loop, 'cpu-sampler', RESTART)
 
     # -- subscriptions ----------------------------------------------------------------------------
     def _on_truth(self, msg: String) -> None:

@@ -28,6 +28,10 @@ Topics:
     "command": [vx, vy]}, "contacts" (count of new touches so far), "touching"
     (names, ``floor_edge`` for the edge), "blocked", "travelled" (m), "objects"}``.
     For tests and the scenario recorder only: a robot must never subscribe to it.
+
+The simulation loop is guarded (:class:`drvs.guard.LoopGuard`): a step that raises
+is logged with its traceback and the loop restarts; one that keeps failing shuts
+the node down with exit code 1.
 """
 
 from __future__ import annotations
@@ -35,11 +39,13 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 
 import rospy
 from geometry_msgs.msg import Twist
 from std_msgs.msg import String
 
+from drvs.guard import RESTART, LoopGuard
 from drvs.simulation import Simulation
 from drvs.world import load_world
 
@@ -60,7 +66,8 @@ class WorldSimNode:
         self._lock = threading.Lock()  # guards the simulation and the command time
         self._last_command = None
         self._last_tick = None
-        self._timer = None
+        self._stopping = threading.Event()
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
 
     @classmethod
     def from_params(cls) -> WorldSimNode:
@@ -76,7 +83,7 @@ class WorldSimNode:
         self.truth_pub = rospy.Publisher('~ground_truth', String, queue_size=2)
         rospy.Subscriber('/robot/cmd_vel', Twist, self._on_cmd_vel, queue_size=2)
         self._last_tick = rospy.get_time()
-        self._timer = rospy.Timer(rospy.Duration(1.0 / self.rate), self._tick)
+        self.guard.spawn(self._loop, 'simulation', RESTART)
         rospy.on_shutdown(self.stop)
         rospy.loginfo(
             '%s: world %s with %d object(s), %d moving; %.0f Hz',
@@ -99,7 +106,18 @@ class WorldSimNode:
             self.simulation.set_command(vx, vy)
             self._last_command = rospy.get_time()
 
-    def _tick(self, _event) -> None:
+    def _loop(self) -> None:
+        period = 1.0 / self.rate
+        next_tick = time.monotonic()
+        while not self._stopping.is_set():
+            self._tick()
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay < 0:  # fell behind: do not try to catch up (MAX_STEP bounds the step)
+                next_tick, delay = time.monotonic(), 0.0
+            self._stopping.wait(delay)
+
+    def _tick(self) -> None:
         now = rospy.get_time()
         with self._lock:
             if self.simulation is None:  # stopped
@@ -116,9 +134,9 @@ class WorldSimNode:
         self.truth_pub.publish(String(json.dumps({'stamp': now, **truth})))
 
     def stop(self) -> None:
-        if self._timer is not None:
-            self._timer.shutdown()
-            self._timer = None
+        self._stopping.set()
+        for thread in self.guard.threads:
+            thread.join(2.0)
         with self._lock:
             if self.simulation is not None:
                 self.simulation.scene.close()
