@@ -386,6 +386,7 @@ class VisionSystemNode:
         attempt = 0
         footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
         while not self._stopping.wait(0.05):
+            self._callback_clients.expire()  # close idle callback connections even when no request comes
             if self.config.moving:
                 footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
             now = time.monotonic()

@@ -156,21 +156,82 @@ class NodeProcess:
 
 
 class RosMaster:
-    """A private rosmaster on a free port, reached over XML-RPC."""
+    """A private rosmaster on a free port, reached over XML-RPC.
+
+    :meth:`restart` replaces it with a new master process on the same port, as a
+    crashed and restarted roscore would (every registration is lost). Every master
+    process it started is in ``processes``, and in the harness's nodes for cleanup.
+    """
 
     def __init__(self, harness: RosHarness):
+        self._harness = harness
         self.port = free_port()
         self.uri = f'http://127.0.0.1:{self.port}/'
-        self.node = harness.spawn('rosmaster', ['rosmaster', '--core', '-p', str(self.port)], ros=False)
+        self.processes: list[NodeProcess] = []
+        self._spawn()  # sets self.node
         wait_for(self._answers, 20.0, f'rosmaster on port {self.port}', on_timeout=self.node.describe)
+
+    def _spawn(self) -> NodeProcess:
+        self.node = self._harness.spawn('rosmaster', ['rosmaster', '--core', '-p', str(self.port)], ros=False)
+        self.processes.append(self.node)
+        return self.node
 
     def _answers(self) -> bool:
         if not self.node.running():
             raise WaitTimeout(f'rosmaster exited early\n{self.node.describe()}')
+        return self._pings()
+
+    def _pings(self) -> bool:
         try:
             return self._raw_call('getPid')[0] == 1
         except OSError:
             return False
+
+    @property
+    def pid(self) -> int:
+        """The pid the master reports (``getPid``)."""
+        return self.call('getPid')
+
+    def kill(self) -> None:
+        """SIGKILL the master's process group and reap it: a crash, no clean shutdown."""
+        node = self.node
+        if node.running():
+            try:
+                os.killpg(node.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        node.process.wait(10)
+        node.stop()  # closes its log; the group is gone
+
+    def restart(self, timeout: float = 20.0) -> int:
+        """Kill -9 the master and start a new one on the same port; return the new master's pid."""
+        self.kill()
+        return self.start_again(timeout)
+
+    def start_again(self, timeout: float = 20.0) -> int:
+        """Start a new master on the same port after :meth:`kill`; return its pid once it answers.
+
+        The port can stay taken for a moment (an outgoing connection may get it
+        as its local port), and rosmaster then waits forever without serving
+        ("Unable to start XML-RPC server"): such a process is stopped and
+        another one started, until one answers or ``timeout`` passes.
+        """
+        if self.node.running():
+            raise RuntimeError(f'rosmaster on port {self.port} is still running: kill() it first')
+        self._spawn()
+
+        def up() -> bool:
+            node = self.node
+            if not node.running() or 'Unable to start XML-RPC server' in node.log():
+                node.stop()
+                self._spawn()
+                return False
+            return self._pings()
+
+        wait_for(
+            up, timeout, f'a new rosmaster on port {self.port}', interval=0.1, on_timeout=self.node.describe
+        )
+        return self.pid
 
     def _raw_call(self, method: str, *args) -> list:
         with xmlrpc.client.ServerProxy(self.uri) as proxy:
@@ -311,7 +372,11 @@ class RosHarness:
     # -- teardown ----------------------------------------------------------------------------
     def close(self) -> None:
         """Stop every node (newest first), then the master; remove the folder unless kept."""
+        masters = self.master.processes if self.master is not None else []
         for node in reversed(self.nodes):
+            if not any(node is master for master in masters):
+                node.stop()
+        for node in reversed(masters):
             node.stop()
         if not self.keep:
             shutil.rmtree(self.root, ignore_errors=True)
