@@ -1,5 +1,6 @@
 """The blind robot node against a scripted fake DRVS (test/nodes/fake_drvs.py): no rendering."""
 
+import json
 import math
 
 import pytest
@@ -53,6 +54,17 @@ def wait_exit(ros, node, timeout):
     return node.process.returncode
 
 
+def final_truth(ros, output, state):
+    """The fake's last record of the truth once it shows the robot's status in ``state``."""
+
+    def last():
+        truths = [e for e in read_json_lines(output) if e['kind'] == 'truth']
+        status = truths[-1]['status'] if truths else None
+        return truths[-1] if status and status['state'] == state else None
+
+    return wait_for(last, 10, f'the fake to record the final status ({state})', on_timeout=ros.describe)
+
+
 def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
     world = write_world(
         ros.root,
@@ -76,16 +88,7 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
     code = wait_exit(ros, robot, 60)
     assert code == 0, ros.describe()
     assert 'arrived at the station' in robot.log(200)
-
-    def final_truth():
-        truths = [e for e in read_json_lines(output) if e['kind'] == 'truth']
-        return (
-            truths[-1]
-            if truths and truths[-1]['status'] and truths[-1]['status']['state'] == 'arrived'
-            else None
-        )
-
-    truth = wait_for(final_truth, 10, 'the fake to record the final status')
+    truth = final_truth(ros, output, 'arrived')
     events = read_json_lines(output)
     assert [e['name'] for e in events if e['kind'] == 'appear'] == ['late']
     assert math.dist(truth['robot'], STATION) <= 0.1 + 0.05  # tolerance + what happened after the last fix
@@ -93,6 +96,7 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
     status = truth['status']
     assert status['replans'] >= 1
     assert status['callbacks'] > status['requests'] // 2  # twice-sent answers were all taken in
+    assert status['refused'] == {}
 
     requests = [e for e in events if e['kind'] == 'request']
     whole = [0.0, 0.0, *FLOOR]
@@ -105,6 +109,94 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
         assert 0.0 < roi[1] <= STATION[1] - 0.75 + 1e-9
         assert STATION[1] + 0.75 - 1e-9 <= roi[3] < FLOOR[1]
     assert {e['role'] for e in requests} == {'self', 'station', 'obstacle', 'human'}
+
+
+@pytest.mark.parametrize('status, name', [(2, 'BUSY'), (9, 'status 9')], ids=['busy', 'unknown-status'])
+def test_temporary_refusals_are_retried_after_retry_after_and_the_robot_arrives(ros, status, name):
+    world = write_world(ros.root, [])
+    refusals = 6
+    fake_params = {'refuse_first': refusals, 'refuse_status': status, 'refuse_retry_after': 0.3}
+    fake_params['refuse_message'] = 'busy: try again later'
+    _, robot, output = start(ros, world, fake_params=fake_params)
+    assert wait_exit(ros, robot, 60) == 0, ros.describe()
+    assert 'arrived at the station' in robot.log(200)
+    truth = final_truth(ros, output, 'arrived')
+    assert truth['status']['refused'] == {name: refusals}
+    assert math.dist(truth['robot'], STATION) <= 0.1 + 0.05
+
+    requests = [e for e in read_json_lines(output) if e['kind'] == 'request']
+    assert [e['status'] for e in requests[:refusals]] == [name] * refusals
+    assert {e['status'] for e in requests[refusals:]} == {'ACCEPTED'}
+    for refused in requests[:refusals]:  # each role came back no earlier than retry_after
+        later = [e for e in requests if e['role'] == refused['role'] and e['time'] > refused['time']]
+        assert later and later[0]['time'] - refused['time'] >= 0.3, (refused, later[:1])
+    warnings = robot.log(400).count('DRVS answered with unknown status 9; retrying it later')
+    assert warnings == (1 if name == 'status 9' else 0)
+
+
+def test_an_invalid_request_ends_the_mission_with_the_servers_message(ros):
+    world = write_world(ros.root, [])
+    message = 'region_of_interest: refused by the fake DRVS'
+    fake_params = {
+        'refuse_first': 1000,
+        'refuse_status': 1,
+        'refuse_message': json.dumps(message),  # _param:= values are YAML: quote the colon
+    }
+    _, robot, output = start(ros, world, fake_params=fake_params)
+    assert wait_exit(ros, robot, 30) == 1
+    reason = f'DRVS refused the self request: {message}'
+    assert reason in robot.log(200)
+    truth = final_truth(ros, output, 'failed')
+    assert truth['status']['reason'] == reason
+    assert truth['status']['refused'] == {'INVALID': 1}
+    requests = [e for e in read_json_lines(output) if e['kind'] == 'request']
+    assert [(e['role'], e['status']) for e in requests] == [('self', 'INVALID')]  # never asked again
+
+
+def test_a_slow_server_never_holds_up_the_control_loop(ros):
+    """Acks take 1 s, five control periods: ticks (cmd_vel, status) keep coming at about ~rate."""
+    world = write_world(ros.root, [])
+    rate, window = 5.0, 5.0
+    _, robot, output = start(
+        ros,
+        world,
+        fake_params={'ack_delay': 1.0},
+        robot_params={'rate': rate, 'request_timeout': 3.0, 'fix_timeout': 30.0, 'once': False},
+    )
+
+    def truths():
+        return [e for e in read_json_lines(output) if e['kind'] == 'truth' and e['status']]
+
+    first = wait_for(lambda: truths()[:1], 30, 'the robot to publish a status', on_timeout=ros.describe)[0]
+    last = wait_for(
+        lambda: [t for t in truths() if t['time'] >= first['time'] + window][:1],
+        30,
+        f'{window} s of the fake recording the robot',
+        on_timeout=ros.describe,
+    )[0]
+    elapsed = last['time'] - first['time']
+    requests = [
+        e
+        for e in read_json_lines(output)
+        if e['kind'] == 'request' and first['time'] <= e['time'] <= last['time']
+    ]
+    assert 2 <= len(requests) <= elapsed / 1.0 + 1  # requests were slow: one ack a second at most
+    # ...while the control loop kept its rate (at least half of it, on a shared machine).
+    assert last['cmd_vels'] - first['cmd_vels'] >= 0.5 * rate * elapsed, (first, last)
+    assert last['status']['stamp'] - first['status']['stamp'] >= 0.5 * elapsed
+    assert last['status']['state'] not in ('localising', 'failed'), last['status']
+    assert robot.running()
+
+
+def test_without_drvs_the_robot_fails_by_its_own_deadline(ros):
+    world = write_world(ros.root, [])
+    robot = ros.start_node(
+        'nodes/blind_robot', name='robot', params={'world': world, 'once': True, 'fix_timeout': 2.0}
+    )
+    assert wait_exit(ros, robot, 30) == 1
+    log = robot.log(200)
+    assert 'DRVS request self-1 failed: service /drvs/detect_object_boundary: unknown service' in log
+    assert 'blind robot failed: no fix of the robot for 2.0 s' in log
 
 
 def test_no_vision_system_covering_the_robot_is_a_failure(ros):

@@ -9,11 +9,11 @@ to anything: no images, no world_sim topic, no ground truth. From the world
 file it reads only the colour models, the floor size, its own size and its
 speed — never where anything is.
 
-Each tick (``~rate`` per second) it asks for itself (whole floor), for the
-station (whole floor, until found, then every ``~station_period``) and, once
-both are known, for obstacles and humans in the box spanned by itself and the
-station plus ``~roi_margin`` (the paper's section 4.3). Callbacks may come from
-several vision systems, in any order, late or twice (:mod:`drvs.perception`).
+Each control tick (``~rate`` per second) it decides what to ask: itself (whole
+floor), its station (whole floor, until found, then every ``~station_period``)
+and, once both are known, obstacles and humans in the box spanned by itself and
+the station plus ``~roi_margin`` (the paper's section 4.3). Callbacks may come
+from several vision systems, in any order, late or twice (:mod:`drvs.perception`).
 Obstacle outlines go into an occupancy grid inflated by ``~robot_radius``
 (:mod:`drvs.occupancy`) and are forgotten ``~obstacle_ttl`` after their vision
 system last reported them; changed cells feed D* Lite, and the controller
@@ -21,12 +21,40 @@ system last reported them; changed cells feed D* Lite, and the controller
 fixes from the velocities it commanded. Once arrived or failed it stops moving
 and stops asking DRVS (with ``~once`` it exits).
 
+Requests never hold up the control loop. The loop posts each tick's round (the
+roles to ask and their regions of interest) to a :class:`drvs.request_schedule.RequestSchedule`
+and a requester thread sends it, one call at a time, each call limited to
+``~request_timeout``: a slow, hung or absent DRVS delays the answers, never a
+control tick, and the loop keeps publishing ``~cmd_vel`` from the controller's
+prediction. A round replaces the one before and a role is asked at most once
+per round (retries included), with the newest region, the role asked least
+recently first: a slow server builds no backlog and starves no role. How DRVS
+answers (``status`` of the response, :mod:`drvs.status`):
+
+- ``ACCEPTED``: forwarded to ``vision_systems`` vision systems (maybe none).
+- ``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, and a call that fails (server down,
+  timed out): that role is asked again after :func:`drvs.retry.retry_delay`
+  seconds, never before the response's ``retry_after``, backing off up to
+  ``~retry_cap`` while it keeps failing, with jitter. This never ends the mission;
+  the robot's own deadlines do (no fix for ``~fix_timeout``). A status code the
+  robot does not know is retried the same way, with a warning logged once.
+- ``INVALID``: the request is wrong and asking again cannot help; the robot
+  fails with "DRVS refused the <role> request: <the server's message>".
+
+Requests leave at most ``~max_request_rate`` per second, below the server's
+default per-caller limit (50/s, bursts of 100); at the default ``~rate`` of 5 the
+rounds alone come to at most 20/s, and retries only ever wait longer.
+
+Background loops (control, requester) are guarded (:class:`drvs.guard.LoopGuard`):
+an unexpected exception in the control loop fails the node (exit code 1); the
+requester is restarted, and fails the node if it keeps failing.
+
 Parameters (private):
 
 ``~world`` (str, required)
     The world file: colour models, floor size, robot size and speed.
 ``~rate`` (float, default 5)
-    Control ticks and DRVS request rounds per second.
+    Control ticks (and rounds of DRVS requests) per second.
 ``~resolution`` (float, default 0.05)
     Occupancy grid cell size, metres.
 ``~robot_radius`` (float, default half the diagonal of the robot's footprint)
@@ -59,7 +87,13 @@ Parameters (private):
 ``~station_period`` (float, default 2)
     Seconds between station requests once the station was found.
 ``~request_timeout`` (float, default 1)
-    Seconds one DRVS call may take.
+    Seconds one DRVS call may take; a call that takes longer counts as failed.
+``~max_request_rate`` (float, default 40)
+    DRVS requests per second, at most, retries included.
+``~retry_cap`` (float, default 1)
+    Longest wait, in seconds before jitter (at most +50 %), between retries of a
+    role that keeps failing or being refused; a longer ``retry_after`` from DRVS
+    is honoured. Keep it well below ``~fix_timeout``.
 ``~drvs_service`` (str, default ``/drvs/detect_object_boundary``)
 ``~once`` (bool, default false)
     Exit when done: code 0 at the station, 1 with the reason logged otherwise.
@@ -72,7 +106,10 @@ Services and topics (``~`` = ``/robot`` when run as ``__name:=robot``):
 ``~map`` (nav_msgs/OccupancyGrid, latched): 0 free, 99 inflated margin, 100 obstacle.
 ``~status`` (std_msgs/String, latched, JSON): state (localising, moving, blocked,
 arriving, arrived, failed), reason, replans, distance_to_goal, position, goal,
-path_length, requests, callbacks, superseded, obstacles, vision_systems.
+path_length, requests (sent), failed_requests (no response), refused (refusals
+per status name, e.g. ``{"BUSY": 3}``), callbacks, refused_callbacks,
+superseded, obstacles, vision_systems (per role, how many its last accepted
+request reached), stamp (ROS time of the tick).
 """
 
 from __future__ import annotations
@@ -89,6 +126,7 @@ from nav_msgs.msg import OccupancyGrid, Path
 from std_msgs.msg import String
 
 from drvs.controller import FAILED, FINAL_STATES, Controller, ControllerSettings
+from drvs.guard import RESTART, SHUTDOWN, LoopGuard
 from drvs.occupancy import CostGrid, GridSpec, ObstacleMemory
 from drvs.perception import (
     LOCALISATION_ROLES,
@@ -100,6 +138,7 @@ from drvs.perception import (
     obstacle_roi,
     whole_floor,
 )
+from drvs.request_schedule import ACCEPT, RETRY, Request, RequestSchedule
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
@@ -109,10 +148,13 @@ from drvs.srv import (
     DetectObjectBoundary,
     DetectObjectBoundaryRequest,
 )
+from drvs.status import name as status_name
 from drvs.world import load_world
 
 MAX_STAMP_AGE = 2.0
 """Seconds; a callback stamped older than this (or in the future) is timed by its arrival instead."""
+IDLE_WAIT = 0.5
+"""Seconds the idle requester sleeps at most before it checks for a stop (a new round wakes it at once)."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +174,8 @@ class RobotParams:
     route_tolerance: float = 0.15
     station_period: float = 2.0
     request_timeout: float = 1.0
+    max_request_rate: float = 40.0
+    retry_cap: float = 1.0
     drvs_service: str = '/drvs/detect_object_boundary'
     once: bool = False
 
@@ -146,6 +190,8 @@ class RobotParams:
         'station_period',
         'request_timeout',
         'route_tolerance',
+        'max_request_rate',
+        'retry_cap',
     )
 
     def __post_init__(self):
@@ -163,6 +209,16 @@ class RobotParams:
     @classmethod
     def from_rospy(cls) -> RobotParams:
         return read_params(cls)
+
+
+def request_schedule(params: RobotParams, **kwargs) -> RequestSchedule:
+    """The robot's request schedule for ``params``; ``kwargs`` (clock, rng) are for tests."""
+    return RequestSchedule(
+        periods={'station': params.station_period},
+        max_rate=params.max_request_rate,
+        cap=params.retry_cap,
+        **kwargs,
+    )
 
 
 class BlindRobot:
@@ -190,21 +246,22 @@ class BlindRobot:
             replan_distance=params.replan_distance,
             route_tolerance=params.route_tolerance,
         )
+        self.schedule = request_schedule(params)
         self.controller: Controller | None = None
-        self._lock = threading.Lock()  # guards perception, memory and the counters below
-        self._counts = {'requests': 0, 'callbacks': 0, 'refused_callbacks': 0, 'failed_requests': 0}
+        self._lock = threading.Lock()  # guards perception, memory and the coverage and callback fields below
+        self._requests = threading.Condition()  # guards schedule; wakes the requester for a new round
+        self._counts = {'callbacks': 0, 'refused_callbacks': 0}
         self._vision_systems: dict[str, int] = {}  # role -> vision systems its last request reached
         self._no_coverage_since: float | None = None
         self._covered = False  # whether a self request ever reached a vision system
         self._started_at = 0.0
-        self._station_asked = -math.inf
         self._obstacles = 0
         self._done = threading.Event()
         self._stop = threading.Event()
         self._last_path: list | None = None
         self._last_map_publish = -math.inf
         self._client: ServiceClient | None = None
-        self._thread: threading.Thread | None = None
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stop)
 
     @classmethod
     def from_params(cls) -> BlindRobot:
@@ -224,8 +281,8 @@ class BlindRobot:
         self._started_at = rospy.get_time()
         self.controller = Controller(self.grid, self.settings, now=self._started_at)
         rospy.on_shutdown(self._stop.set)
-        self._thread = threading.Thread(target=self._loop, name='blind_robot', daemon=True)
-        self._thread.start()
+        self.guard.spawn(self._request_loop, 'requester', RESTART)
+        self.guard.spawn(self._loop, 'control', SHUTDOWN)
         rospy.loginfo(
             'blind robot: radius %.3f m, speed %.2f m/s, asking %s at %.1f Hz',
             self.robot_radius,
@@ -235,15 +292,23 @@ class BlindRobot:
         )
 
     def wait(self) -> int:
-        """With ``~once``: block until done; 0 at the station, 1 on failure. Otherwise until shutdown."""
+        """With ``~once``: block until done; 0 at the station, 1 on failure. Otherwise until shutdown.
+
+        A background loop that crashed is a failure too (1, with or without ``~once``).
+        """
         while not rospy.is_shutdown() and not (self.params.once and self._done.is_set()):
             self._done.wait(0.2)
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5.0)
+        with self._requests:
+            self._requests.notify_all()
+        for thread in self.guard.threads:
+            thread.join(self.params.request_timeout + 5.0)
         self._halt()
         if self._client is not None:
             self._client.close()
+        if self.guard.failure is not None:
+            rospy.logerr('blind robot failed: %s', self.guard.failure)
+            return 1
         if self.controller is not None and self.controller.state == FAILED:
             rospy.logerr('blind robot failed: %s', self.controller.reason)
             return 1 if self.params.once else 0
@@ -276,32 +341,68 @@ class BlindRobot:
                 self.memory.observe((answer.role, answer.vision_system), answer.outlines, received)
         return CallbackCoordinatesResponse()
 
-    # -- requests --------------------------------------------------------------------------
-    def _ask(self, role: str, roi) -> None:
+    # -- requests: the requester thread ------------------------------------------------------
+    def _request_loop(self) -> None:
+        """Send what the schedule says, one call at a time, until the node stops."""
+        while not self._stop.is_set():
+            with self._requests:
+                request = self.schedule.next_request()
+                if request is None:
+                    wait = self.schedule.wait_time()
+                    self._requests.wait(IDLE_WAIT if wait is None else min(wait, IDLE_WAIT))
+                    continue
+            try:
+                self._send(request)
+            except BaseException:
+                with self._requests:  # a bug, not the network: count it failed, ask again after restart
+                    if self.schedule.in_flight(request.role):
+                        self.schedule.on_failure(request.role)
+                raise
+
+    def _send(self, request: Request) -> None:
+        role = request.role
         with self._lock:
             request_id = self.perception.requests.issue(role)
             algorithm = self.perception.algorithms[role]
-            self._counts['requests'] += 1
-        request = DetectObjectBoundaryRequest(
+        message = DetectObjectBoundaryRequest(
             algorithm=algorithm,
-            region_of_interest=box_to_msg(roi),
+            region_of_interest=box_to_msg(request.region_of_interest),
             callback_service=self.callback_service,
             request_id=request_id,
         )
         try:
-            response = self._client.call(request)
+            response = self._client.call(message)
         except ServiceCallError as error:
-            with self._lock:
-                self._counts['failed_requests'] += 1
-            rospy.logwarn_throttle(5.0, 'DRVS request %s failed: %s', request_id, error)
+            with self._requests:
+                outcome = self.schedule.on_failure(role)
+            rospy.logwarn_throttle(
+                5.0, 'DRVS request %s failed: %s; asking again in %.2f s', request_id, error, outcome.delay
+            )
             return
-        if not response.accepted:
-            self.controller.fail(f'DRVS refused the {role} request: {response.message}')
-            return
-        self._vision_systems[role] = response.vision_systems
-        if role == 'self':
-            now = rospy.get_time()
-            if response.vision_systems == 0:
+        with self._requests:
+            outcome = self.schedule.on_response(
+                role, response.status, response.retry_after, response.message, response.accepted
+            )
+        if outcome.action == ACCEPT:
+            self._on_accepted(role, response.vision_systems)
+        elif outcome.action == RETRY:
+            rospy.logwarn_throttle(
+                5.0,
+                'DRVS refused %s (%s): %s; asking again in %.2f s',
+                request_id,
+                status_name(response.status),
+                response.message,
+                outcome.delay,
+            )
+        # GIVE_UP (INVALID): the control loop fails the mission with the server's message.
+
+    def _on_accepted(self, role: str, vision_systems: int) -> None:
+        now = rospy.get_time()
+        with self._lock:
+            self._vision_systems[role] = vision_systems
+            if role != 'self':
+                return
+            if vision_systems == 0:
                 # Never covered since start: count from the start, as the fix timeout does.
                 since = self._started_at if not self._covered else now
                 self._no_coverage_since = self._no_coverage_since or since
@@ -309,21 +410,25 @@ class BlindRobot:
                 self._covered = True
                 self._no_coverage_since = None
 
-    def _request_round(self, now: float, fix, station) -> None:
-        floor = whole_floor(self.floor_size)
-        self._ask('self', floor)
-        if station is None or now - self._station_asked >= self.params.station_period:
-            self._station_asked = now
-            self._ask('station', floor)
-        if fix is not None and station is not None:
-            roi = obstacle_roi(
-                self.controller.position or fix.position,
-                station.position,
-                self.params.roi_margin,
-                self.floor_size,
-            )
-            for role in OBSTACLE_ROLES:
-                self._ask(role, roi)
+    def _post_round(self, fix, station) -> None:
+        """Tell the requester what to ask now (or, once done, to ask nothing more)."""
+        with self._requests:
+            if self.controller.state in FINAL_STATES:
+                self.schedule.stop()
+                return
+            floor = whole_floor(self.floor_size)
+            regions = {'self': floor, 'station': floor}
+            if fix is not None and station is not None:
+                roi = obstacle_roi(
+                    self.controller.position or fix.position,
+                    station.position,
+                    self.params.roi_margin,
+                    self.floor_size,
+                )
+                regions.update(dict.fromkeys(OBSTACLE_ROLES, roi))
+            found = [role for role, known in zip(LOCALISATION_ROLES, (fix, station), strict=True) if known]
+            self.schedule.post(regions, found)
+            self._requests.notify()
 
     # -- the control loop ------------------------------------------------------------------
     def _loop(self) -> None:
@@ -340,22 +445,26 @@ class BlindRobot:
             self._stop.wait(delay)
 
     def _tick(self, now: float) -> None:
+        """One control step; never waits for DRVS (the requester does)."""
         controller = self.controller
-        with self._lock:
-            fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
-        if controller.state not in FINAL_STATES:
-            self._request_round(now, fix, station)
+        with self._requests:
+            invalid = self.schedule.invalid
+        if invalid is not None:
+            role, message = invalid
+            controller.fail(f'DRVS refused the {role} request: {message}')
         with self._lock:
             fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
             sources = self.memory.current(now)
+            no_coverage_since = self._no_coverage_since
         self._update_map(now, sources, fix, station)
-        if self._no_coverage_since is not None and now - self._no_coverage_since > self.params.fix_timeout:
+        if no_coverage_since is not None and now - no_coverage_since > self.params.fix_timeout:
             controller.fail(
                 f'no vision system covers the robot: DRVS forwarded its self request to none '
                 f'for {self.params.fix_timeout:.1f} s'
             )
         vx, vy = controller.step(now, fix, station)
         self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
+        self._post_round(fix, station)
         self._publish(now)
 
     def _update_map(self, now: float, sources, fix, station) -> None:
@@ -377,9 +486,19 @@ class BlindRobot:
     def _publish(self, now: float) -> None:
         controller = self.controller
         status = controller.status()
+        with self._requests:
+            status.update(
+                requests=self.schedule.sent,
+                failed_requests=self.schedule.failed,
+                refused=dict(self.schedule.refused),
+            )
         with self._lock:
-            status.update(self._counts, superseded=self.perception.superseded)
-        status.update(obstacles=self._obstacles, vision_systems=dict(self._vision_systems), stamp=now)
+            status.update(
+                self._counts,
+                superseded=self.perception.superseded,
+                vision_systems=dict(self._vision_systems),
+            )
+        status.update(obstacles=self._obstacles, stamp=now)
         self.status_pub.publish(String(json.dumps(status)))
         if controller.path is not self._last_path:
             self._last_path = controller.path

@@ -15,13 +15,21 @@ Objects named in ``~hidden`` (comma-separated) are absent until the robot comes
 within ``~appear_distance`` metres of them: an obstacle that steps onto its path.
 Humans walk their waypoint loops at their speed.
 
+A troubled server: the first ``~refuse_first`` requests are refused with status
+``~refuse_status`` (a :mod:`drvs.status` code, any number), ``~refuse_retry_after``
+and ``~refuse_message``, and no callback; every acknowledgement is held back
+``~ack_delay`` seconds (its callbacks are on their way meanwhile): a slow server.
+
 Parameters: ``~world`` (required), ``~output`` (JSON lines, required),
 ``~latency`` (0.15), ``~duplicate`` (true), ``~hidden`` (''),
-``~appear_distance`` (0.9), ``~cameras`` (2; 0 = no vision system covers anything).
+``~appear_distance`` (0.9), ``~cameras`` (2; 0 = no vision system covers anything),
+``~refuse_first`` (0), ``~refuse_status`` (2, BUSY), ``~refuse_retry_after`` (0.3),
+``~refuse_message`` ('refused by the fake DRVS'), ``~ack_delay`` (0).
 
-Output lines (``kind``): ``request`` (role, request_id, roi, vision_systems),
-``appear`` (name, robot), ``truth`` every 0.2 s (time, robot position,
-contacts, the robot's latest /robot/status as ``status``).
+Output lines (``kind``): ``request`` (time, role, request_id, roi, vision_systems,
+status name, retry_after), ``appear`` (name, robot), ``truth`` every 0.2 s (time,
+robot position, contacts, cmd_vels received so far, the robot's latest
+/robot/status as ``status``). Times are seconds since the fake started.
 """
 
 import json
@@ -45,6 +53,7 @@ from drvs.srv import (
     DetectObjectBoundary,
     DetectObjectBoundaryResponse,
 )
+from drvs.status import ACCEPTED, INVALID, name
 from drvs.world import box_footprint, load_world
 
 CMD_TIMEOUT = 0.5
@@ -72,6 +81,13 @@ class FakeDrvs:
         self.duplicate = bool(rospy.get_param('~duplicate', True))
         self.hidden = {n for n in str(rospy.get_param('~hidden', '')).split(',') if n}
         self.appear_distance = float(rospy.get_param('~appear_distance', 0.9))
+        self.refuse_first = int(rospy.get_param('~refuse_first', 0))
+        self.refuse_status = int(rospy.get_param('~refuse_status', 2))
+        self.refuse_retry_after = float(rospy.get_param('~refuse_retry_after', 0.3))
+        self.refuse_message = str(rospy.get_param('~refuse_message', 'refused by the fake DRVS'))
+        self.ack_delay = float(rospy.get_param('~ack_delay', 0.0))
+        self.requests = 0
+        self.cmd_vels = 0
         fx, fy = self.world.floor_size
         cameras = int(rospy.get_param('~cameras', 2))
         self.cameras = {'/fake_west': box(0, 0, 0.6 * fx, fy), '/fake_east': box(0.4 * fx, 0, fx, fy)}
@@ -137,19 +153,36 @@ class FakeDrvs:
                     'time': time.monotonic() - self.started,
                     'robot': list(self.robot),
                     'contacts': self.contacts,
+                    'cmd_vels': self.cmd_vels,
                     'status': self.status,
                 }
             )
 
     # -- DRVS --------------------------------------------------------------------------------
     def detect(self, req):
+        response = self.answer(req)
+        time.sleep(self.ack_delay)
+        return response
+
+    def answer(self, req):
         try:
             model = parse_algorithm(req.algorithm)
         except AlgorithmError as error:
-            return DetectObjectBoundaryResponse(accepted=False, message=str(error), vision_systems=0)
+            return DetectObjectBoundaryResponse(accepted=False, status=INVALID, message=str(error))
         roi = box(*msg_to_box(req.region_of_interest))
         role = req.request_id.rpartition('-')[0]
         captured = rospy.Time.now()
+        with self.lock:
+            self.requests += 1
+            refused = self.requests <= self.refuse_first
+        if refused:
+            self.record_request(req, role, 0, self.refuse_status, self.refuse_retry_after)
+            return DetectObjectBoundaryResponse(
+                accepted=self.refuse_status == ACCEPTED,
+                status=self.refuse_status,
+                message=self.refuse_message,
+                retry_after=self.refuse_retry_after,
+            )
         with self.lock:
             seen = [
                 fp
@@ -157,22 +190,14 @@ class FakeDrvs:
                 if all(lo <= c <= hi for lo, c, hi in zip(model.lower, colour, model.upper, strict=True))
                 and fp.intersects(roi)
             ]
-        reached = [name for name, coverage in self.cameras.items() if coverage.intersects(roi)]
-        self.record(
-            {
-                'kind': 'request',
-                'role': role,
-                'request_id': req.request_id,
-                'roi': list(msg_to_box(req.region_of_interest)),
-                'vision_systems': len(reached),
-            }
-        )
+        reached = [camera for camera, coverage in self.cameras.items() if coverage.intersects(roi)]
+        self.record_request(req, role, len(reached), ACCEPTED, 0.0)
         callbacks = []
-        for name in reached:
-            visible = [fp for fp in seen if self.cameras[name].contains(ShapelyPoint(fp.centroid))]
+        for camera in reached:
+            visible = [fp for fp in seen if self.cameras[camera].contains(ShapelyPoint(fp.centroid))]
             if not visible:
                 continue  # selectivity: a vision system that found nothing does not call back
-            shift = self.jitter[name]
+            shift = self.jitter[camera]
             objects = [
                 points_to_detected_object([(x + shift, y) for x, y in list(fp.exterior.coords)[:-1]])
                 for fp in visible
@@ -181,7 +206,7 @@ class FakeDrvs:
                 CallbackCoordinatesRequest(
                     algorithm=req.algorithm,
                     request_id=req.request_id,
-                    vision_system=name,
+                    vision_system=camera,
                     stamp=captured,
                     objects=objects,
                 )
@@ -192,7 +217,21 @@ class FakeDrvs:
         due = time.monotonic() + self.latency
         for callback in callbacks:
             self.outbox.put((due, req.callback_service, callback))
-        return DetectObjectBoundaryResponse(accepted=True, message='', vision_systems=len(reached))
+        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, vision_systems=len(reached))
+
+    def record_request(self, req, role, vision_systems, status, retry_after):
+        self.record(
+            {
+                'kind': 'request',
+                'time': time.monotonic() - self.started,
+                'role': role,
+                'request_id': req.request_id,
+                'roi': list(msg_to_box(req.region_of_interest)),
+                'vision_systems': vision_systems,
+                'status': name(status),
+                'retry_after': retry_after,
+            }
+        )
 
     def deliver(self):
         """Send callbacks when they are due (one worker: answers leave in the order they were made)."""
@@ -213,6 +252,7 @@ class FakeDrvs:
     def on_cmd_vel(self, msg):
         with self.lock:
             self.command = (msg.linear.x, msg.linear.y, time.monotonic())
+            self.cmd_vels += 1
 
     def on_status(self, msg):
         with self.lock:
