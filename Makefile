@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup test test-slow demo lint format clean
+.PHONY: setup test test-slow soak reliability-report demo lint format clean
 
 setup:
 	@bash scripts/setup.sh
@@ -17,6 +17,19 @@ demo: setup
 
 test-slow: setup
 	$(PY) -m pytest -m slow $(PYTEST_ARGS)
+
+# The reliability suites (faults, load, hostile input, master restart) at small sizes:
+# writes docs/reliability.md and the table between README.md's reliability markers.
+reliability-report: setup
+	$(PY) scripts/reliability_report.py $(PYTEST_ARGS)
+
+# The slow variants (full sizes: 10 robots x 20 vision systems x 50 requests, repeated
+# faults), then the report with them; their lines are kept in $(SOAK_LOG), not run twice.
+SOAK_LOG := out/soak-reliability.jsonl
+soak: setup
+	@mkdir -p out && rm -f $(SOAK_LOG)
+	DRVS_RELIABILITY_LOG=$(CURDIR)/$(SOAK_LOG) $(PY) -m pytest -m slow $(PYTEST_ARGS); status=$$?; \
+	$(PY) scripts/reliability_report.py --soak --slow-log $(SOAK_LOG) $(PYTEST_ARGS) && exit $$status
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -14,6 +14,9 @@ are refused (:class:`drvs.status.Refusal`, ``UNAVAILABLE`` with ``retry_after``)
 for ``ejection_time`` times the number of times it was ejected, at most
 ``max_ejection_time``, so a wedged camera cannot flap back in at every renewal
 and swallow robots' requests. A successful forward forgets its past ejections.
+The ejection holds for the *instance* that failed (the server passes the
+service's ``rosrpc://`` URI): a restarted vision system, serving from a new
+address, may register again at once, so a crash and restart costs no waiting.
 
 One entry holds everything the server keeps for a vision system: field of view,
 lease, the node that registered it (``provider``) and the connection the server
@@ -65,6 +68,7 @@ class Registration:
     polygon: Polygon = field(repr=False, compare=False)
     expires_at: float  # on the registry's clock
     provider: str = ''  # caller id of the node that registered it
+    instance: str = ''  # which process serves it (the server uses its rosrpc URI)
     client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
 
 
@@ -105,7 +109,7 @@ class Registry:
         self._lock = threading.Lock()
         self._entries: dict[str, Registration] = {}
         self._failures: dict[str, int] = {}
-        self._ejections: dict[str, tuple[int, float]] = {}  # name -> (times ejected, refused until)
+        self._ejections: dict[str, tuple[int, float, str]] = {}  # name -> (times, refused until, instance)
         self._expiries: list[tuple[float, str]] = []  # heap; stale items are skipped
         self._index = index if index is not None else FieldOfViewIndex()
         self.version = 0  # bumped on every change of the listed entries (not on renewals)
@@ -131,6 +135,7 @@ class Registry:
         field_of_view: Sequence[Sequence[float]],
         provider: str = '',
         make_client: Callable[[str], object] | None = None,
+        instance: str = '',
     ) -> str:
         """Add, move, renew or (with no vertices) remove ``service_name``.
 
@@ -143,7 +148,8 @@ class Registry:
         is closed by :meth:`unregister`'s caller: use that to remove.
 
         :raises ValidationError: the field of view is not a valid polygon.
-        :raises Refusal: ``UNAVAILABLE``, the vision system is ejected; ``retry_after`` says until when.
+        :raises Refusal: ``UNAVAILABLE``, this instance of the vision system is ejected;
+            ``retry_after`` says until when.
         """
         if len(field_of_view) == 0:
             removed = self.unregister(service_name)
@@ -154,7 +160,7 @@ class Registry:
         points = tuple((float(p[0]), float(p[1])) for p in field_of_view)
         with self._lock:
             now = self.clock()
-            self._refuse_if_ejected(service_name, now)
+            self._refuse_if_ejected(service_name, instance, now)
             expires_at = now + self.lease
             old = self._entries.get(service_name)
             if old is None:
@@ -163,12 +169,12 @@ class Registry:
                 client = old.client
             if old is not None and old.field_of_view == points:
                 self._entries[service_name] = Registration(
-                    service_name, points, old.polygon, expires_at, provider, client
+                    service_name, points, old.polygon, expires_at, provider, instance, client
                 )
                 change = RENEWED
             else:
                 self._entries[service_name] = Registration(
-                    service_name, points, polygon, expires_at, provider, client
+                    service_name, points, polygon, expires_at, provider, instance, client
                 )
                 self._index.insert(service_name, polygon)
                 self.version += 1
@@ -177,21 +183,25 @@ class Registry:
             heapq.heappush(self._expiries, (expires_at, service_name))
         return change
 
-    def _refuse_if_ejected(self, service_name: str, now: float) -> None:
-        times, until = self._ejections.get(service_name, (0, 0.0))
-        if now < until:
-            raise Refusal(
-                UNAVAILABLE,
-                f'service_name: {service_name} was removed after {self.max_failures} failed forwards '
-                f'in a row and is ejected for {until - now:.1f} s more (ejection {times}); '
-                'make its DetectObjectBoundary answer, then register again',
-                until - now,
-            )
+    def _refuse_if_ejected(self, service_name: str, instance: str, now: float) -> None:
+        times, until, ejected = self._ejections.get(service_name, (0, 0.0, ''))
+        if now >= until:
+            return
+        if instance != ejected:  # a new process: let it in, but remember the count
+            self._ejections[service_name] = (times, now, ejected)
+            return
+        raise Refusal(
+            UNAVAILABLE,
+            f'service_name: {service_name} was removed after {self.max_failures} failed forwards '
+            f'in a row and is ejected for {until - now:.1f} s more (ejection {times}); '
+            'make its DetectObjectBoundary answer, or restart it, then register again',
+            until - now,
+        )
 
     def ejected_until(self, service_name: str) -> float | None:
         """When ``service_name``'s current ejection ends (registry clock), or None if it is not ejected."""
         with self._lock:
-            times, until = self._ejections.get(service_name, (0, 0.0))
+            until = self._ejections.get(service_name, (0, 0.0, ''))[1]
             return until if until > self.clock() else None
 
     def unregister(self, service_name: str) -> Registration | None:
@@ -235,7 +245,7 @@ class Registry:
             if len(self._expiries) > 4 * len(self._entries) + 64:  # renewals leave stale heap items
                 self._expiries = [(e.expires_at, e.service_name) for e in self._entries.values()]
                 heapq.heapify(self._expiries)
-            for name, (_, until) in list(self._ejections.items()):  # bounded: forget old ones
+            for name, (_, until, _) in list(self._ejections.items()):  # bounded: forget old ones
                 if until + self.max_ejection_time < now:
                     del self._ejections[name]
         return removed
@@ -255,9 +265,10 @@ class Registry:
             self._failures[service_name] += 1
             if self._failures[service_name] < self.max_failures:
                 return None
-            times = self._ejections.get(service_name, (0, 0.0))[0] + 1
+            times = self._ejections.get(service_name, (0, 0.0, ''))[0] + 1
             duration = min(self.ejection_time * times, self.max_ejection_time)
-            self._ejections[service_name] = (times, self.clock() + duration)
+            instance = self._entries[service_name].instance
+            self._ejections[service_name] = (times, self.clock() + duration, instance)
             self.ejected_total += 1
             return self._remove(service_name)
 

@@ -95,12 +95,28 @@ def test_consecutive_failures_remove_and_eject(registry, clock):
     assert (caught.value.status, caught.value.retry_after) == (UNAVAILABLE, 10.0)
     assert str(caught.value) == (
         'service_name: /a was removed after 3 failed forwards in a row and is ejected for 10.0 s more '
-        '(ejection 1); make its DetectObjectBoundary answer, then register again'
+        '(ejection 1); make its DetectObjectBoundary answer, or restart it, then register again'
     )
     clock.now += 10
     assert registry.register('/a', square(0, 0)) == 'registered'
     assert registry.failures('/a') == 0
     assert registry.match((0, 0, 1, 1)) == ['/a']
+
+
+def test_a_restarted_instance_is_not_ejected(registry):
+    """The ejection holds for the process that failed; a new one (new address) registers at once."""
+    registry.register('/a', square(0, 0), instance='rosrpc://host:1')
+    for _ in range(3):
+        registry.record_failure('/a')
+    with pytest.raises(Refusal):
+        registry.register('/a', square(0, 0), instance='rosrpc://host:1')
+    assert registry.register('/a', square(0, 0), instance='rosrpc://host:2') == 'registered'
+    assert registry.get('/a').instance == 'rosrpc://host:2'
+    for _ in range(3):
+        registry.record_failure('/a')
+    with pytest.raises(Refusal) as caught:  # the count is kept: the second ejection is longer
+        registry.register('/a', square(0, 0), instance='rosrpc://host:2')
+    assert caught.value.retry_after == 20.0
 
 
 def test_renewals_do_not_reset_failures(registry, clock):

@@ -90,6 +90,7 @@ from drvs.ros.service_client import (
     MasterUnreachable,
     ServiceCallError,
     ServiceClient,
+    ServiceInfo,
     UnknownService,
     probe_service,
 )
@@ -288,12 +289,16 @@ class DrvsServer:
             field_of_view_polygon(points)
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
-        if entry is None or entry.provider != caller:  # a renewal or move by the verified provider skips this
-            self._check_service(
+        if entry is not None and entry.provider == caller:  # a renewal or move by the verified provider
+            instance = entry.instance
+        else:
+            instance = self._check_service(
                 'service_name', service, DetectObjectBoundary, provider_must_be=caller or '(no caller id)'
-            )
+            ).uri
         try:
-            change = self.registry.register(service, points, provider=caller, make_client=self._make_client)
+            change = self.registry.register(
+                service, points, provider=caller, make_client=self._make_client, instance=instance
+            )
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
         if change == REGISTERED:
@@ -346,7 +351,9 @@ class DrvsServer:
         if entry.client is not None:
             entry.client.close()
 
-    def _check_service(self, field: str, service: str, service_class, provider_must_be: str | None = None):
+    def _check_service(
+        self, field: str, service: str, service_class, provider_must_be: str | None = None
+    ) -> ServiceInfo:
         """Check that ``service`` is known to the master and of the expected type (and provider).
 
         :raises Refusal: ``INVALID`` naming ``field`` and the problem; ``UNAVAILABLE`` when the
@@ -375,6 +382,7 @@ class DrvsServer:
                 f'{field}: {service} is provided by {info.provider}, not by the caller {provider_must_be}; '
                 'a node may register only its own service',
             )
+        return info
 
     # -- requests ----------------------------------------------------------------------------
     def handle_detect(self, request) -> DetectObjectBoundaryResponse:

@@ -2,10 +2,14 @@
 """A drvs/CallbackCoordinates server for tests: appends every call as one JSON line to ``~output``.
 
 Parameters: ``~output`` (file, required), ``~service`` (default
-``/robot/callback_coordinates``), ``~delay`` (seconds to hold each call before
-answering, default 0: simulates a slow or hung robot).
-Each line: algorithm, request_id, vision_system, stamp (float seconds), caller,
-objects (a list of outlines, each a list of [x, y]), bounding_boxes.
+``/robot/callback_coordinates``), ``~services`` (a list, YAML or comma-separated:
+serve all of these instead of ``~service``, as many robots' callbacks in one
+process), ``~delay`` (seconds to hold each call before answering, default 0:
+simulates a slow or hung robot).
+Each line: service (the one called), received (``time.monotonic()`` on arrival:
+the test process's clock on Linux), algorithm, request_id, vision_system, stamp
+(float seconds), caller, objects (a list of outlines, each a list of [x, y]),
+bounding_boxes.
 """
 
 import json
@@ -17,32 +21,47 @@ import rospy
 from drvs.srv import CallbackCoordinates, CallbackCoordinatesResponse
 
 
+def service_names():
+    names = rospy.get_param('~services', None)
+    if names is None:
+        return [rospy.get_param('~service', '/robot/callback_coordinates')]
+    if isinstance(names, str):
+        names = names.split(',')
+    return [str(name).strip() for name in names if str(name).strip()]
+
+
 def main():
     rospy.init_node('callback_recorder')
     output = rospy.get_param('~output')
     delay = float(rospy.get_param('~delay', 0.0))
     lock = threading.Lock()
 
-    def handle(request):
-        record = {
-            'algorithm': request.algorithm,
-            'request_id': request.request_id,
-            'vision_system': request.vision_system,
-            'stamp': request.stamp.to_sec(),
-            'caller': request._connection_header.get('callerid', ''),
-            'objects': [[[p.x, p.y] for p in o.boundary.points] for o in request.objects],
-            'bounding_boxes': [
-                [o.bounding_box.min_x, o.bounding_box.min_y, o.bounding_box.max_x, o.bounding_box.max_y]
-                for o in request.objects
-            ],
-        }
-        with lock, open(output, 'a') as handle_:
-            handle_.write(json.dumps(record) + '\n')
-        if delay > 0:
-            time.sleep(delay)
-        return CallbackCoordinatesResponse()
+    def handler(service):
+        def handle(request):
+            record = {
+                'service': service,
+                'received': time.monotonic(),
+                'algorithm': request.algorithm,
+                'request_id': request.request_id,
+                'vision_system': request.vision_system,
+                'stamp': request.stamp.to_sec(),
+                'caller': request._connection_header.get('callerid', ''),
+                'objects': [[[p.x, p.y] for p in o.boundary.points] for o in request.objects],
+                'bounding_boxes': [
+                    [o.bounding_box.min_x, o.bounding_box.min_y, o.bounding_box.max_x, o.bounding_box.max_y]
+                    for o in request.objects
+                ],
+            }
+            with lock, open(output, 'a') as handle_:
+                handle_.write(json.dumps(record) + '\n')
+            if delay > 0:
+                time.sleep(delay)
+            return CallbackCoordinatesResponse()
 
-    rospy.Service(rospy.get_param('~service', '/robot/callback_coordinates'), CallbackCoordinates, handle)
+        return handle
+
+    for service in service_names():
+        rospy.Service(service, CallbackCoordinates, handler(rospy.resolve_name(service)))
     rospy.spin()
 
 
