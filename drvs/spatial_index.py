@@ -39,7 +39,9 @@ import threading
 import warnings
 from collections.abc import Hashable
 
+from shapely.errors import ShapelyError
 from shapely.geometry.base import BaseGeometry
+from shapely.prepared import prep
 from shapely.strtree import STRtree
 
 logger = logging.getLogger('rosout.' + __name__)
@@ -48,8 +50,24 @@ __all__ = ['FieldOfViewIndex', 'interiors_intersect']
 
 
 def interiors_intersect(field_of_view: BaseGeometry, region: BaseGeometry) -> bool:
-    """True if the interiors of the two geometries share at least one point."""
-    return field_of_view.relate_pattern(region, 'T********')
+    """True if the interiors of the two geometries share at least one point.
+
+    GEOS's relate is not robust for every valid input (a region corner on a
+    vertex rounded to float32 can raise "side location conflict"); then the
+    answer falls back to intersection (prepared geometry, another algorithm),
+    and at last to overlapping bounds. Both may also count touching edges: a
+    request forwarded to one camera too many costs little, a lost request costs
+    a robot its answer.
+    """
+    try:
+        return field_of_view.relate_pattern(region, 'T********')
+    except ShapelyError as error:
+        logger.warning('relate failed (%s); matching by intersection instead', error)
+    try:
+        return prep(field_of_view).intersects(region)
+    except ShapelyError as error:
+        logger.warning('intersection failed too (%s); matching by bounds', error)
+        return _boxes_overlap(field_of_view.bounds, region.bounds)
 
 
 def _boxes_overlap(a: tuple, b: tuple) -> bool:

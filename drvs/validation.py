@@ -36,6 +36,13 @@ __all__ = [
 
 _NAME = re.compile(r'^[~/]?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$')
 MAX_NAME_LENGTH = 256
+MAX_COORDINATE = 1e6
+"""Largest magnitude of a coordinate (metres) in a region of interest or a field of view.
+
+Far beyond any floor. Without a bound, coordinates near 1e308 overflow GEOS's
+arithmetic and matching fails on valid shapes (TopologyException: side location conflict).
+"""
+_WITHIN = f'coordinates must be between {-MAX_COORDINATE:g} and {MAX_COORDINATE:g}'
 
 
 class ValidationError(ValueError):
@@ -49,7 +56,8 @@ def field_of_view_polygon(points: Sequence[Sequence[float]]) -> Polygon:
     its first vertex at the end.
 
     :raises ValidationError: fewer than 3 vertices, a coordinate that is not
-        finite, all vertices on one line (zero area), or a self-intersection.
+        finite or beyond :data:`MAX_COORDINATE`, all vertices on one line (zero
+        area), or a self-intersection.
     """
     points = [(float(p[0]), float(p[1])) for p in points]
     if len(points) < 3:
@@ -57,6 +65,8 @@ def field_of_view_polygon(points: Sequence[Sequence[float]]) -> Polygon:
     for index, (x, y) in enumerate(points):
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValidationError(f'field_of_view: vertex {index} is ({x}, {y}); coordinates must be finite')
+        if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:
+            raise ValidationError(f'field_of_view: vertex {index} is ({x}, {y}); {_WITHIN}')
     if MultiPoint(points).convex_hull.area == 0.0:
         raise ValidationError('field_of_view: zero area (all vertices lie on one line)')
     polygon = Polygon(points)
@@ -76,14 +86,20 @@ _BOX_FIELDS = ('min_x', 'min_y', 'max_x', 'max_y')
 
 
 def region_of_interest(box: Sequence[float]) -> tuple[float, float, float, float]:
-    """``(min_x, min_y, max_x, max_y)`` checked: finite, and each min at most its max.
+    """``(min_x, min_y, max_x, max_y)`` checked: finite, within :data:`MAX_COORDINATE`, min <= max.
 
     A region of zero width or height (a segment or a point) is allowed.
     """
     values = tuple(float(v) for v in box)
+    if len(values) != len(_BOX_FIELDS):
+        raise ValidationError(
+            f'region_of_interest: {len(values)} values; expected 4 (min_x, min_y, max_x, max_y)'
+        )
     for field, value in zip(_BOX_FIELDS, values, strict=True):
         if not math.isfinite(value):
             raise ValidationError(f'region_of_interest: {field} is {value}; coordinates must be finite')
+        if abs(value) > MAX_COORDINATE:
+            raise ValidationError(f'region_of_interest: {field} is {value:g}; {_WITHIN}')
     min_x, min_y, max_x, max_y = values
     if min_x > max_x:
         raise ValidationError(f'region_of_interest: min_x {min_x:g} is greater than max_x {max_x:g}')
@@ -108,7 +124,7 @@ def ros_name(field: str, name: str) -> str:
         raise ValidationError(f'{field}: empty; expected a ROS name such as /robot/callback_coordinates')
     if len(name) > MAX_NAME_LENGTH:
         raise ValidationError(f'{field}: {len(name)} characters, longer than the limit of {MAX_NAME_LENGTH}')
-    if not _NAME.match(name):
+    if not _NAME.fullmatch(name):  # not match(): its $ also matches before a trailing newline
         raise ValidationError(f'{field}: {name!r} is not a valid ROS name')
     return name
 

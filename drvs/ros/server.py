@@ -72,6 +72,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 
 import cachetools
@@ -271,6 +272,8 @@ class DrvsServer:
             return self._register(request, _caller(request))
         except Refusal as refusal:
             return self._refuse_register(refusal)
+        except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
+            return self._refuse_register(self._internal_error('registration', error))
 
     def _register(self, request, caller: str) -> RegisterVisionServiceResponse:
         limited = self._rate_limit(request)
@@ -281,6 +284,11 @@ class DrvsServer:
         except ValidationError as error:
             raise Refusal(INVALID, str(error)) from None
         service = rosgraph.names.resolve_name(request.service_name, caller or '/')
+        if caller == rospy.get_name():
+            raise Refusal(
+                INVALID,
+                f'service_name: the caller {caller} is the DRVS server itself; forwarding to it would loop',
+            )
         points = polygon_to_points(request.field_of_view)
         entry = self.registry.get(service)
         if not points:
@@ -390,6 +398,17 @@ class DrvsServer:
             return self._detect(request)
         except Refusal as refusal:
             return self._refuse_detect(request, refusal)
+        except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
+            return self._refuse_detect(request, self._internal_error('request', error))
+
+    def _internal_error(self, what: str, error: Exception) -> Refusal:
+        rospy.logerr('%s failed unexpectedly:\n%s', what, traceback.format_exc())
+        return Refusal(
+            UNAVAILABLE,
+            f'internal error in the DRVS server ({type(error).__name__}: {error}); '
+            'it is logged there; retry later',
+            self.settings.unavailable_retry_after,
+        )
 
     def _detect(self, request) -> DetectObjectBoundaryResponse:
         limited = self._rate_limit(request)

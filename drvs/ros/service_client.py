@@ -328,7 +328,7 @@ class ServiceClient:
         buffer = io.BytesIO()
         try:
             request.serialize(buffer)
-        except (struct.error, TypeError, ValueError, AttributeError) as error:
+        except (struct.error, TypeError, ValueError, AttributeError, OverflowError) as error:
             raise ServiceCallError(f'service {self.service}: cannot serialise the request: {error}') from None
         data = buffer.getvalue()
         _send(self._sock, struct.pack('<I', len(data)) + data, deadline, 'request')
