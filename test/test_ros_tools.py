@@ -19,9 +19,34 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
         'string callback_service',
         'string request_id',
         '---',
+        'uint8 ACCEPTED=0',
+        'uint8 INVALID=1',
+        'uint8 BUSY=2',
+        'uint8 RATE_LIMITED=3',
+        'uint8 UNAVAILABLE=4',
         'bool accepted',
+        'uint8 status',
         'string message',
         'uint32 vision_systems',
+        'float32 retry_after',
+    ]
+
+
+def test_rossrv_show_lists_the_registration_lease_and_status(ros: RosHarness):
+    result = ros.run('rossrv show drvs/RegisterVisionService')
+    assert result.returncode == 0, result.stderr
+    lines = [line.strip() for line in result.stdout.splitlines() if line.strip()]
+    assert lines[lines.index('---') + 1 :] == [
+        'uint8 ACCEPTED=0',
+        'uint8 INVALID=1',
+        'uint8 BUSY=2',
+        'uint8 RATE_LIMITED=3',
+        'uint8 UNAVAILABLE=4',
+        'bool accepted',
+        'uint8 status',
+        'string message',
+        'float32 lease',
+        'float32 retry_after',
     ]
 
 
