@@ -45,9 +45,7 @@ transport code, which logs one for each body it cannot deserialise.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import random
 import socket
 import struct
@@ -69,7 +67,7 @@ from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
 from drvs.spatial_index import interiors_intersect
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
-from drvs.testing import wait_for
+from drvs.testing import reliability_log, wait_for
 from drvs.validation import (
     MAX_COORDINATE,
     MAX_NAME_LENGTH,
@@ -638,12 +636,20 @@ def server_tracebacks(graph) -> int:
     return graph.server.log_path.read_text(errors='replace').count('Traceback')
 
 
-def record_reliability(record: dict) -> None:
-    """Append ``record`` as one JSON line to ``$DRVS_RELIABILITY_LOG`` (format: the module docstring)."""
-    path = os.environ.get('DRVS_RELIABILITY_LOG')
-    if path:
-        with open(path, 'a', encoding='utf-8') as handle:
-            handle.write(json.dumps({'suite': 'hostile', **record}) + '\n')
+def record_reliability(record: dict, what: str) -> None:
+    """One line for the reliability report (:mod:`drvs.testing.reliability_log`).
+
+    The outcome is ``held`` while the server is alive; the test's assertions decide the rest
+    (the report also reads pytest's own results).
+    """
+    reliability_log.record(
+        'hostile',
+        record.pop('test'),
+        what=what,
+        outcome='held' if record['server_alive'] else 'failed',
+        inputs=record['requests'],
+        **record,
+    )
 
 
 def by_status(counts: Counter) -> dict[str, int]:
@@ -771,7 +777,8 @@ def test_random_requests_get_ack_or_invalid(ros, fuzz_graph, count, request):
             'by_status': by_status(counts),
             'server_alive': alive,
             'tracebacks': tracebacks,
-        }
+        },
+        'random requests and registrations at a live server',
     )
     print(
         f'{count} requests in {duration:.1f} s: {by_status(counts)}; '
@@ -991,7 +998,8 @@ def test_garbage_on_the_wire_leaves_the_server_serving(ros, wire_graph, request)
             'by_status': by_status(counts),
             'server_alive': graph.server.running(),
             'tracebacks': tracebacks,
-        }
+        },
+        'malformed bodies and handshakes on raw TCP connections to the server',
     )
     print(f'{len(GARBAGE)} garbage connections: {by_status(counts)}; {tracebacks} tracebacks in the log')
     # rospy logs tracebacks of its own transport (and of genpy's generated drvs/srv code

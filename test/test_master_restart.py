@@ -17,6 +17,7 @@ from drvs.ros.master_watch import MasterWatch
 from drvs.ros.service_client import ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
 from drvs.testing import RosHarness, read_json_lines, wait_for
+from drvs.testing.reliability_log import Trial
 
 NODE = 'test/nodes/master_watch_node.py'
 URI = 'http://127.0.0.1:4000/'
@@ -341,7 +342,7 @@ def test_a_hung_master_is_waited_for_and_a_new_one_gets_everything_again(ros, tm
 
 
 # -- live: the real DRVS server --------------------------------------------------------------------
-def test_drvs_server_services_come_back_after_a_master_restart(ros, monkeypatch):
+def test_drvs_server_services_come_back_after_a_master_restart(ros, monkeypatch, request):
     monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
     server = ros.start_node('nodes/drvs_server', name='drvs')
     services = ['/drvs/detect_object_boundary', '/drvs/register_vision_service']
@@ -349,13 +350,16 @@ def test_drvs_server_services_come_back_after_a_master_restart(ros, monkeypatch)
         ros.wait_for_service(service, node=server)
     old_pid = ros.master.pid
 
-    new_pid = ros.master.restart()
-    wait_for(
-        lambda: all(ros.master.lookup_service(service) for service in services),
-        REREGISTER_DEADLINE,
-        'the DRVS services on the new master',
-        on_timeout=ros.describe,
-    )
+    with Trial('master', request.node.name, 'roscore killed and restarted on the same port') as trial:
+        started = time.monotonic()
+        new_pid = ros.master.restart()
+        wait_for(
+            lambda: all(ros.master.lookup_service(service) for service in services),
+            REREGISTER_DEADLINE,
+            'the DRVS services on the new master',
+            on_timeout=ros.describe,
+        )
+        trial['recovery_seconds'] = round(time.monotonic() - started, 3)
     assert f'restarted (pid {old_pid} -> {new_pid})' in server.log()
     assert '/drvs/registry' in {topic for topic, _ in ros.master.system_state()[0]}
 
@@ -387,7 +391,12 @@ def test_drvs_server_services_come_back_after_a_master_restart(ros, monkeypatch)
 SCENARIO_TIMEOUT = 150
 
 
-def test_obstacles_scenario_reaches_the_station_across_a_master_restart(ros):
+def test_obstacles_scenario_reaches_the_station_across_a_master_restart(ros, request):
+    with Trial('master', request.node.name, 'roscore restarted while the robot drives its scenario') as trial:
+        _run_scenario_across_a_master_restart(ros, trial)
+
+
+def _run_scenario_across_a_master_restart(ros, trial):
     out = ros.root / 'out'
     runner = ros.spawn(
         'run_scenario',
@@ -428,6 +437,7 @@ def test_obstacles_scenario_reaches_the_station_across_a_master_restart(ros):
     summary = json.loads(summary_path.read_text())
     assert summary['reached'] is True, tails
     assert runner.process.returncode == 0, tails
+    trial.update(reached=summary['reached'], elapsed=summary['elapsed'], collisions=summary['collisions'])
     restarted = f'restarted (pid {old_pid} -> {new_pid})'
     for name in ('drvs_server.log', 'world_sim.log', 'vs1.log', 'vs2.log', 'recorder.log', 'robot.log'):
         assert restarted in logs[name], f'{name} did not register again\n{tails}'
