@@ -7,6 +7,8 @@ from collections.abc import Iterable, Sequence
 from geometry_msgs.msg import Point32, Polygon
 
 from drvs.msg import BoundingBox, DetectedObject
+from drvs.srv import DetectObjectBoundaryResponse
+from drvs.status import Refusal
 
 Point = tuple[float, float]
 Box = tuple[float, float, float, float]  # min_x, min_y, max_x, max_y
@@ -38,3 +40,14 @@ def bounds_of(points: Iterable[Sequence[float]]) -> Box:
 def points_to_detected_object(points: Sequence[Sequence[float]]) -> DetectedObject:
     """An outline (counter-clockwise on the floor) -> drvs/DetectedObject with its bounding box."""
     return DetectedObject(boundary=points_to_polygon(points), bounding_box=box_to_msg(bounds_of(points)))
+
+
+def refusal_to_detect_response(refusal: Refusal) -> DetectObjectBoundaryResponse:
+    """A DetectObjectBoundary response that refuses: status, message and retry_after of ``refusal``."""
+    return DetectObjectBoundaryResponse(
+        accepted=False,
+        status=refusal.status,
+        message=refusal.message,
+        vision_systems=0,
+        retry_after=refusal.retry_after,
+    )

@@ -85,7 +85,7 @@ from drvs.dispatch import Busy, Dispatcher
 from drvs.guard import RESTART, LoopGuard
 from drvs.rate_limit import RateLimiter
 from drvs.registry import MOVED, NOT_REGISTERED, REGISTERED, RENEWED, Registration, Registry
-from drvs.ros.conversions import msg_to_box, polygon_to_points
+from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
 from drvs.ros.params import read_params
 from drvs.ros.service_client import (
     MasterUnreachable,
@@ -258,13 +258,7 @@ class DrvsServer:
             name(refusal.status),
             refusal.message,
         )
-        return DetectObjectBoundaryResponse(
-            accepted=False,
-            status=refusal.status,
-            message=refusal.message,
-            vision_systems=0,
-            retry_after=refusal.retry_after,
-        )
+        return refusal_to_detect_response(refusal)
 
     # -- registration ------------------------------------------------------------------------
     def handle_register(self, request) -> RegisterVisionServiceResponse:

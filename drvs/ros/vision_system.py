@@ -94,7 +94,12 @@ from drvs.camera import PinholeCamera
 from drvs.client_cache import ClosingCache
 from drvs.guard import RESTART, LoopGuard
 from drvs.retry import retry_delay
-from drvs.ros.conversions import msg_to_box, points_to_detected_object, points_to_polygon
+from drvs.ros.conversions import (
+    msg_to_box,
+    points_to_detected_object,
+    points_to_polygon,
+    refusal_to_detect_response,
+)
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame, Scene
@@ -323,13 +328,7 @@ class VisionSystemNode:
             status_name(refusal.status),
             refusal.message,
         )
-        return DetectObjectBoundaryResponse(
-            accepted=False,
-            status=refusal.status,
-            message=refusal.message,
-            vision_systems=0,
-            retry_after=refusal.retry_after,
-        )
+        return refusal_to_detect_response(refusal)
 
     def _work(self) -> None:
         while not self._stopping.is_set():
