@@ -182,28 +182,10 @@ class RequestSchedule:
             return None
         return max(0.0, min(times) - self.clock(), self._last_sent + self.min_interval - self.clock())
 
-    def on_response(
-        self,
-        role: str,
-        status: int,
-        retry_after: float = 0.0,
-        message: str = '',
-        accepted: bool | None = None,
-    ) -> Outcome:
-        """Record DRVS's answer to the request for ``role``; say what it means.
-
-        ``status`` decides. ``accepted`` (the response's flag, optional) should agree with
-        it; if it does not, the status wins and a warning is logged once.
-        """
+    def on_response(self, role: str, status: int, retry_after: float = 0.0, message: str = '') -> Outcome:
+        """Record DRVS's answer (its ``status``) to the request for ``role``; say what it means."""
         state = self._roles[role]
         state.in_flight = False
-        if accepted is not None and accepted != (status == ACCEPTED):
-            self._warn_once(
-                ('inconsistent', status),
-                'DRVS answered accepted=%s with status %s; acting on the status',
-                accepted,
-                name(status),
-            )
         if status == ACCEPTED:
             state.attempt = 0
             state.not_before = -math.inf

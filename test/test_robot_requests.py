@@ -231,16 +231,6 @@ def test_an_unknown_status_is_retried_and_warned_about_once(schedule, clock, cap
     ]
 
 
-def test_the_status_wins_over_an_accepted_flag_that_disagrees(schedule, clock, caplog):
-    caplog.set_level(logging.WARNING, logger='rosout.drvs.request_schedule')
-    schedule.post({'self': FLOOR})
-    schedule.next_request()
-    assert schedule.on_response('self', BUSY, retry_after=0.3, accepted=True).action == RETRY
-    assert [r.getMessage() for r in caplog.records] == [
-        'DRVS answered accepted=True with status BUSY; acting on the status'
-    ]
-
-
 def test_stop_ends_the_requests(schedule, clock):
     schedule.post(ALL)
     schedule.stop()

@@ -380,9 +380,7 @@ class BlindRobot:
             )
             return
         with self._requests:
-            outcome = self.schedule.on_response(
-                role, response.status, response.retry_after, response.message, response.accepted
-            )
+            outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
         if outcome.action == ACCEPT:
             self._on_accepted(role, response.vision_systems)
         elif outcome.action == RETRY:

@@ -185,12 +185,11 @@ class DrvsServer:
         self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
         self._stopping = threading.Event()
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
-        self._lock = threading.Lock()  # guards _callbacks and refusals
+        self._lock = threading.Lock()  # guards _callbacks
         # Verified callback service -> when verified; bounded in size and age.
         self._callbacks = cachetools.TTLCache(
             maxsize=MAX_CALLBACKS_REMEMBERED, ttl=max(settings.callback_memory, settings.callback_cache, 1e-3)
         )
-        self.refusals: dict[str, int] = {}  # by status name, for introspection and the tests
         self._changed = threading.Condition()
         self._dirty = True
         self._registry_publisher = None
@@ -236,13 +235,7 @@ class DrvsServer:
             wait,
         )
 
-    def _count_refusal(self, refusal: Refusal) -> None:
-        with self._lock:
-            key = name(refusal.status)
-            self.refusals[key] = self.refusals.get(key, 0) + 1
-
     def _refuse_register(self, refusal: Refusal) -> RegisterVisionServiceResponse:
-        self._count_refusal(refusal)
         log = rospy.logwarn if refusal.status == INVALID else rospy.loginfo
         log('registration refused (%s): %s', name(refusal.status), refusal.message)
         return RegisterVisionServiceResponse(
@@ -250,7 +243,6 @@ class DrvsServer:
         )
 
     def _refuse_detect(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
-        self._count_refusal(refusal)
         rospy.loginfo(
             'request %r from %s refused (%s): %s',
             request.request_id,
