@@ -16,7 +16,7 @@ from drvs.msg import BoundingBox
 from drvs.ros.master_watch import MasterWatch
 from drvs.ros.service_client import ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
-from drvs.testing import RosHarness, read_json_lines, wait_for
+from drvs.testing import ManualClock, RosHarness, read_json_lines, wait_for
 from drvs.testing.reliability_log import Trial
 
 NODE = 'test/nodes/master_watch_node.py'
@@ -26,17 +26,11 @@ REREGISTER_DEADLINE = 5.0  # seconds: a 1 s poll period plus registering
 
 
 # -- the detection rule, without a master -----------------------------------------------------------
-class Clock:
-    def __init__(self):
-        self.now = 50.0
-
-    def __call__(self):
-        return self.now
 
 
 @pytest.fixture
 def clock():
-    return Clock()
+    return ManualClock(50.0)
 
 
 @pytest.fixture

@@ -5,14 +5,7 @@ import pytest
 from drvs.registry import Registry, ValidationError
 from drvs.spatial_index import FieldOfViewIndex
 from drvs.status import UNAVAILABLE, Refusal
-
-
-class Clock:
-    def __init__(self):
-        self.now = 100.0
-
-    def __call__(self):
-        return self.now
+from drvs.testing import ManualClock
 
 
 def square(x, y, size=1.0):
@@ -25,7 +18,7 @@ def names(entries):
 
 @pytest.fixture
 def clock():
-    return Clock()
+    return ManualClock()
 
 
 @pytest.fixture

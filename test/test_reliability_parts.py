@@ -12,23 +12,16 @@ from drvs.client_cache import ClosingCache
 from drvs.guard import RESTART, SHUTDOWN, LoopGuard
 from drvs.rate_limit import RateLimiter
 from drvs.retry import retry_delay
+from drvs.testing import ManualClock
 
 WAIT = 5.0  # seconds any thread event may take before the test fails
-
-
-class Clock:
-    def __init__(self, now=100.0):
-        self.now = now
-
-    def __call__(self):
-        return self.now
 
 
 # --- RateLimiter -------------------------------------------------------------
 
 
 def test_burst_then_refusal_with_retry_after():
-    clock = Clock()
+    clock = ManualClock()
     limiter = RateLimiter(rate=50, burst=100, clock=clock)
     assert [limiter.take('/robot') for _ in range(100)] == [0.0] * 100
     assert limiter.take('/robot') == pytest.approx(0.02)
@@ -37,7 +30,7 @@ def test_burst_then_refusal_with_retry_after():
 
 
 def test_refill_over_time_up_to_burst():
-    clock = Clock()
+    clock = ManualClock()
     limiter = RateLimiter(rate=10, burst=5, clock=clock)
     for _ in range(5):
         limiter.take('/a')
@@ -52,7 +45,7 @@ def test_refill_over_time_up_to_burst():
 
 
 def test_a_caller_that_waits_retry_after_is_served():
-    clock = Clock(1234.567)
+    clock = ManualClock(1234.567)
     limiter = RateLimiter(rate=7, burst=3, clock=clock)
     for _ in range(1000):
         retry_after = limiter.take('/a')
@@ -63,7 +56,7 @@ def test_a_caller_that_waits_retry_after_is_served():
 
 
 def test_keys_are_independent():
-    clock = Clock()
+    clock = ManualClock()
     limiter = RateLimiter(rate=1, burst=2, clock=clock)
     assert [limiter.take('/a') for _ in range(3)] == [0.0, 0.0, pytest.approx(1.0)]
     assert [limiter.take('/b') for _ in range(2)] == [0.0, 0.0]
@@ -72,7 +65,7 @@ def test_keys_are_independent():
 
 
 def test_memory_bounded_by_max_keys():
-    clock = Clock()
+    clock = ManualClock()
     limiter = RateLimiter(rate=1, burst=10, clock=clock, max_keys=8)
     for n in range(1000):
         assert limiter.take(f'/caller_{n}') == 0.0
@@ -81,7 +74,7 @@ def test_memory_bounded_by_max_keys():
 
 
 def test_keys_forgotten_after_ttl_lose_nothing():
-    clock = Clock()
+    clock = ManualClock()
     limiter = RateLimiter(rate=2, burst=4, clock=clock)  # ttl = 2 s
     for _ in range(4):
         limiter.take('/a')
@@ -230,7 +223,7 @@ def test_shutdown_loop_failure_is_fatal_once():
 
 def test_restart_escalates_after_max_restarts_within_window():
     fatal = Fatal()
-    clock = Clock()
+    clock = ManualClock()
     guard = LoopGuard(fatal, restart_delay=0, max_restarts=2, window=60, clock=clock)
     runs = []
 
@@ -249,7 +242,7 @@ def test_restart_escalates_after_max_restarts_within_window():
 
 def test_failures_spread_beyond_the_window_do_not_escalate():
     fatal = Fatal()
-    clock = Clock()
+    clock = ManualClock()
     guard = LoopGuard(fatal, restart_delay=0, max_restarts=1, window=60, clock=clock)
     runs = []
 
@@ -404,7 +397,7 @@ def factory():
 
 
 def test_factory_called_once_per_key_while_cached(factory):
-    cache = ClosingCache(factory, maxsize=4, ttl=10, clock=Clock())
+    cache = ClosingCache(factory, maxsize=4, ttl=10, clock=ManualClock())
     first = cache.get('/a')
     assert cache.get('/a') is first
     assert cache.get('/b') is not first
@@ -414,7 +407,7 @@ def test_factory_called_once_per_key_while_cached(factory):
 
 
 def test_least_recently_used_is_evicted_and_closed(factory):
-    clock = Clock()
+    clock = ManualClock()
     cache = ClosingCache(factory, maxsize=2, ttl=10, clock=clock)
     a, b = cache.get('/a'), cache.get('/b')
     cache.get('/a')  # /b is now the least recently used
@@ -427,7 +420,7 @@ def test_least_recently_used_is_evicted_and_closed(factory):
 
 
 def test_idle_values_expire_and_are_closed(factory):
-    clock = Clock()
+    clock = ManualClock()
     cache = ClosingCache(factory, maxsize=10, ttl=5, clock=clock)
     a = cache.get('/a')
     clock.now += 3
@@ -445,7 +438,7 @@ def test_idle_values_expire_and_are_closed(factory):
 
 
 def test_an_idle_value_is_replaced_not_reused(factory):
-    clock = Clock()
+    clock = ManualClock()
     cache = ClosingCache(factory, maxsize=10, ttl=5, clock=clock)
     old = cache.get('/a')
     clock.now += 6
@@ -455,7 +448,7 @@ def test_an_idle_value_is_replaced_not_reused(factory):
 
 
 def test_use_refreshes_last_use_time(factory):
-    clock = Clock()
+    clock = ManualClock()
     cache = ClosingCache(factory, maxsize=10, ttl=5, clock=clock)
     a = cache.get('/a')
     for _ in range(10):
@@ -466,7 +459,7 @@ def test_use_refreshes_last_use_time(factory):
 
 
 def test_pop_and_clear_close_exactly_once(factory):
-    cache = ClosingCache(factory, maxsize=10, ttl=5, clock=Clock())
+    cache = ClosingCache(factory, maxsize=10, ttl=5, clock=ManualClock())
     a, b, c = cache.get('/a'), cache.get('/b'), cache.get('/c')
     assert cache.pop('/a') is True
     assert cache.pop('/a') is False
@@ -479,7 +472,7 @@ def test_pop_and_clear_close_exactly_once(factory):
 
 def test_close_exceptions_are_logged_and_the_cache_goes_on(caplog):
     factory = Factory(fail_close={'/bad'})
-    cache = ClosingCache(factory, maxsize=1, ttl=5, clock=Clock())
+    cache = ClosingCache(factory, maxsize=1, ttl=5, clock=ManualClock())
     bad = cache.get('/bad')
     with caplog.at_level(logging.ERROR, logger='rosout.drvs.client_cache'):
         good = cache.get('/good')  # evicts /bad, whose close raises
@@ -492,7 +485,7 @@ def test_close_exceptions_are_logged_and_the_cache_goes_on(caplog):
 
 
 def test_a_failing_factory_changes_nothing(factory):
-    clock = Clock()
+    clock = ManualClock()
 
     def flaky(key):
         if key == '/broken':
@@ -510,7 +503,7 @@ def test_a_failing_factory_changes_nothing(factory):
 
 def test_custom_close():
     closed = []
-    cache = ClosingCache(lambda key: key.upper(), maxsize=1, ttl=5, clock=Clock(), close=closed.append)
+    cache = ClosingCache(lambda key: key.upper(), maxsize=1, ttl=5, clock=ManualClock(), close=closed.append)
     cache.get('a')
     cache.get('b')
     assert closed == ['A']
@@ -531,7 +524,7 @@ def test_closing_cache_bad_arguments(maxsize, ttl, message):
 
 
 def test_many_threads_keep_the_cache_bounded_and_close_every_eviction(factory):
-    cache = ClosingCache(factory, maxsize=16, ttl=3600, clock=Clock())
+    cache = ClosingCache(factory, maxsize=16, ttl=3600, clock=ManualClock())
     start = threading.Barrier(6)
     errors = []
 

@@ -12,6 +12,7 @@ from drvs.rate_limit import RateLimiter
 from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
 from drvs.ros.robot import RobotParams, request_schedule
 from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE
+from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 3.0, 3.0)
 ROI = (0.5, 0.5, 2.5, 2.0)
@@ -19,17 +20,9 @@ ALL = {'self': FLOOR, 'station': FLOOR, 'obstacle': ROI, 'human': ROI}
 DEFAULTS = RobotParams(world='unused.yaml')
 
 
-class Clock:
-    def __init__(self):
-        self.now = 100.0
-
-    def __call__(self):
-        return self.now
-
-
 @pytest.fixture
 def clock():
-    return Clock()
+    return ManualClock()
 
 
 @pytest.fixture
@@ -280,7 +273,7 @@ def simulate(params, respond, seconds=60.0, latency=0.0, seed=1):
     Rounds of all four roles are posted at ``params.rate`` (the station never found: the most
     requests); a single requester answers each request ``latency`` seconds after sending it.
     """
-    clock = Clock()
+    clock = ManualClock()
     rng = random.Random(seed)
     schedule = request_schedule(params, clock=clock, rng=rng.random)
     start, sent = clock.now, []
@@ -307,7 +300,7 @@ def simulate(params, respond, seconds=60.0, latency=0.0, seed=1):
 
 
 def assert_under_the_servers_limit(sent, seconds=60.0):
-    limiter_clock = Clock()
+    limiter_clock = ManualClock()
     limiter = RateLimiter(rate=50, burst=100, clock=limiter_clock)  # the server's defaults
     for t in sent:
         limiter_clock.now = t

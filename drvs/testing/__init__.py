@@ -1,5 +1,6 @@
 """Test support: a private rosmaster per test, nodes as subprocesses, waits with deadlines."""
 
+from drvs.testing.clock import ManualClock
 from drvs.testing.harness import (
     NodeProcess,
     RosHarness,
@@ -12,6 +13,7 @@ from drvs.testing.harness import (
 )
 
 __all__ = [
+    'ManualClock',
     'NodeProcess',
     'RosHarness',
     'RosMaster',
