@@ -38,12 +38,14 @@ and the rows r with v_top <= r + 1 <= v_bottom of its projected corners."""
 
 @dataclass(frozen=True)
 class Frame:
-    """One captured view: RGB (H, W, 3) uint8, depth along the optical axis (H, W) metres,
-    the camera it was taken with, when (seconds, the caller's clock) and ``sample_offset``:
-    add it to array-pixel coordinates to get the camera model's (u, v) of what they show."""
+    """One captured view: RGB (H, W, 3) uint8, depth along the optical axis (H, W) metres
+    (None for a camera without depth), the camera model it was taken with
+    (:class:`PinholeCamera` or :class:`drvs.optics.CameraModel`), when (seconds: the
+    moment it shows) and ``sample_offset``: add it to array-pixel coordinates to get
+    the camera model's (u, v) of what they show."""
 
     rgb: np.ndarray
-    depth: np.ndarray
+    depth: np.ndarray | None
     camera: PinholeCamera
     stamp: float
     sample_offset: tuple[float, float] = (0.0, 0.0)
@@ -51,6 +53,30 @@ class Frame:
     def to_camera(self, pixels) -> np.ndarray:
         """Array-pixel (u, v) positions -> the camera model's (u, v)."""
         return np.asarray(pixels, float) + np.asarray(self.sample_offset)
+
+
+def render_view(client: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB (H, W, 3) uint8, depth buffer (H, W) in [0, 1]) of ``camera``'s view in PyBullet
+    ``client``, with TinyRenderer: ambient light only, no shadows."""
+    view = pybullet.computeViewMatrix(camera.eye, camera.target, camera.up, physicsClientId=client)
+    projection = pybullet.computeProjectionMatrixFOV(
+        camera.fov_deg, camera.aspect, camera.near, camera.far, physicsClientId=client
+    )
+    width, height, rgba, depth, _ = pybullet.getCameraImage(
+        camera.width,
+        camera.height,
+        view,
+        projection,
+        shadow=0,
+        lightAmbientCoeff=1.0,
+        lightDiffuseCoeff=0.0,
+        lightSpecularCoeff=0.0,
+        renderer=pybullet.ER_TINY_RENDERER,
+        flags=pybullet.ER_NO_SEGMENTATION_MASK,
+        physicsClientId=client,
+    )
+    rgb = np.ascontiguousarray(np.reshape(np.asarray(rgba, np.uint8), (height, width, 4))[..., :3])
+    return rgb, np.reshape(np.asarray(depth, np.float32), (height, width))
 
 
 def _rgba(colour) -> list[float]:
@@ -140,25 +166,8 @@ class Scene:
     # -- rendering -----------------------------------------------------------------------------
     def render(self, camera: PinholeCamera, stamp: float = 0.0) -> Frame:
         """Render ``camera``'s view with TinyRenderer: flat colours, no shadows."""
-        view = pybullet.computeViewMatrix(camera.eye, camera.target, camera.up, physicsClientId=self.client)
-        projection = pybullet.computeProjectionMatrixFOV(
-            camera.fov_deg, camera.aspect, camera.near, camera.far, physicsClientId=self.client
-        )
-        width, height, rgba, depth, _ = pybullet.getCameraImage(
-            camera.width,
-            camera.height,
-            view,
-            projection,
-            shadow=0,
-            lightAmbientCoeff=1.0,
-            lightDiffuseCoeff=0.0,
-            lightSpecularCoeff=0.0,
-            renderer=pybullet.ER_TINY_RENDERER,
-            flags=pybullet.ER_NO_SEGMENTATION_MASK,
-            physicsClientId=self.client,
-        )
-        rgb = np.ascontiguousarray(np.reshape(np.asarray(rgba, np.uint8), (height, width, 4))[..., :3])
-        metric = camera.metric_depth(np.reshape(np.asarray(depth, np.float32), (height, width)))
+        rgb, depth = render_view(self.client, camera)
+        metric = camera.metric_depth(depth)
         return Frame(
             rgb=rgb,
             depth=metric.astype(np.float32),

@@ -54,6 +54,9 @@ class Camera:
     ``fov_deg`` is the vertical field of view (as PyBullet's
     ``computeProjectionMatrixFOV``); image rows run along ``up`` (default +y of
     ``map``). ``waypoints`` and ``speed`` move the camera mount (x, y; height kept).
+    ``distortion`` is the lens's plumb_bob model (k1, k2, p1, p2, k3), as in a
+    CameraInfo's ``D``; empty for an ideal pinhole. The simulation applies it to the
+    frames it publishes (:mod:`drvs.lens`).
     """
 
     name: str
@@ -64,6 +67,7 @@ class Camera:
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     waypoints: tuple[tuple[float, float], ...] = ()
     speed: float = 0.0
+    distortion: tuple[float, ...] = ()
 
     @property
     def moving(self) -> bool:
@@ -167,7 +171,17 @@ BODY_KEYS = (
     'loop',
     'wait_for_robot',
 )
-CAMERA_KEYS = ('name', 'position', 'fov_deg', 'resolution', 'target', 'up', 'waypoints', 'speed')
+CAMERA_KEYS = (
+    'name',
+    'position',
+    'fov_deg',
+    'resolution',
+    'target',
+    'up',
+    'waypoints',
+    'speed',
+    'distortion',
+)
 
 
 def _body(r: _Reader, data, key: str, default_name: str, moving_allowed: bool) -> Body:
@@ -241,6 +255,15 @@ def _camera(r: _Reader, data, key: str) -> Camera:
     if 'waypoints' in data or 'speed' in data:
         waypoints = r.waypoints(data.get('waypoints'), f'{key}.waypoints')
         speed = r.number(data.get('speed'), f'{key}.speed', positive=True)
+    distortion = ()
+    if 'distortion' in data:
+        distortion = r.vector(data['distortion'], f'{key}.distortion', 5, '[k1, k2, p1, p2, k3]')
+        if any(abs(c) > 10.0 for c in distortion):
+            raise r.fail(
+                f'{key}.distortion',
+                'plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10',
+                list(distortion),
+            )
     return Camera(
         name=name,
         position=position,
@@ -250,6 +273,7 @@ def _camera(r: _Reader, data, key: str) -> Camera:
         up=up,
         waypoints=waypoints,
         speed=speed,
+        distortion=distortion,
     )
 
 

@@ -77,6 +77,13 @@ def test_the_test_worlds_load(path):
     assert load_world(path).vision_systems
 
 
+def test_a_camera_lens_is_read_as_plumb_bob_coefficients(tmp_path):
+    data = changed('vision_systems.0.distortion', [-0.2, 0.05, 0.001, -0.001, 0])
+    camera = load_world(write(tmp_path, data)).camera('vs1')
+    assert camera.distortion == (-0.2, 0.05, 0.001, -0.001, 0.0)
+    assert load_world(write(tmp_path, BASE)).camera('vs1').distortion == ()  # an ideal pinhole
+
+
 @pytest.mark.parametrize(
     'key, value, message',
     [
@@ -137,6 +144,17 @@ def test_the_test_worlds_load(path):
             'vision_systems.0.speed',
             0.5,
             'vision_systems[0].waypoints: expected a list of at least 2 points ' '[[x, y], ...], got None',
+        ),
+        (
+            'vision_systems.0.distortion',
+            [-0.2, 0.05],
+            'vision_systems[0].distortion: expected 5 numbers [k1, k2, p1, p2, k3], got [-0.2, 0.05]',
+        ),
+        (
+            'vision_systems.0.distortion',
+            [-20.0, 0, 0, 0, 0],
+            'vision_systems[0].distortion: expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within '
+            '+-10, got [-20.0, 0.0, 0.0, 0.0, 0.0]',
         ),
         ('colour_models.human', None, 'colour_models.human: missing (roles: self, station, obstacle, human)'),
         (
