@@ -39,7 +39,7 @@ import rospy.core
 from rospy.impl.registration import get_service_manager, get_topic_manager
 
 from drvs.master_restart import MasterRestartDetector, Verdict
-from drvs.ros.service_client import _TimeoutTransport
+from drvs.ros.service_client import TimeoutTransport
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -185,7 +185,7 @@ class MasterWatch:
         return verdict
 
     def _proxy(self, uri: str) -> xmlrpc.client.ServerProxy:
-        return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(self.timeout))
+        return xmlrpc.client.ServerProxy(uri, transport=TimeoutTransport(self.timeout))
 
     def _ask_master(self) -> tuple[int | None, str | None]:
         """(the master's pid or None if it did not answer, the URI it has for this node or None)."""

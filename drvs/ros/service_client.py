@@ -71,7 +71,9 @@ class ServiceInfo:
     provider: str  # caller id of the node that serves it
 
 
-class _TimeoutTransport(xmlrpc.client.Transport):
+class TimeoutTransport(xmlrpc.client.Transport):
+    """XML-RPC over HTTP with a socket timeout: a master that does not answer cannot hang a caller."""
+
     def __init__(self, timeout: float):
         super().__init__()
         self._timeout = timeout
@@ -96,7 +98,7 @@ def lookup_service(
     """
     uri = master_uri or rosgraph.get_master_uri()
     try:
-        with xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(max(timeout, 0.001))) as master:
+        with xmlrpc.client.ServerProxy(uri, transport=TimeoutTransport(max(timeout, 0.001))) as master:
             code, message, value = master.lookupService(caller_id or _caller_id(), name)
     except (OSError, xmlrpc.client.Error) as error:
         raise MasterUnreachable(f'service {name}: cannot ask the master at {uri}: {error}') from None

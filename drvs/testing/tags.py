@@ -1,0 +1,122 @@
+"""AprilTags (tag36h11) lying on a floor, rendered with PyBullet's TinyRenderer: views for drvs_calibrate.
+
+Each tag is a flat textured quad at z = 0 on a grey floor plate (a little below it,
+so the two never fight for the depth buffer). The texture is the marker as
+``cv2.aruco.drawMarker`` draws it (8 x 8 cells: the black border and 6 x 6 bits)
+inside a white quiet zone one cell wide; a tag of ``size`` is the black square.
+Seen from above, the printed top of a tag at ``yaw`` 0 points along +y of ``map``
+and its left edge is towards -x; ``yaw`` turns it counter-clockwise.
+
+PyBullet puts a texture on any shape with ``loadTexture`` + ``changeVisualShape``,
+but only a mesh with UV coordinates shows it as drawn: a ``GEOM_BOX`` maps a part
+of the texture to each face. So the quad is an OBJ file written next to the textures.
+The view is lit as :meth:`drvs.scene.Scene.render` lights it (ambient only), so
+the array's pixels follow :data:`drvs.scene.TINY_RENDERER_SAMPLE` and
+``drvs.optics.intrinsics_of(camera, TINY_RENDERER_SAMPLE)`` is its ``K``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pybullet
+
+from drvs.camera import PinholeCamera
+from drvs.scene import render_view
+
+CELLS = 8
+"""Cells across the black square of a tag36h11 marker as aruco draws it."""
+CELL_PIXELS = 32
+FLOOR_DEPTH = 0.01
+"""The floor plate's top is this far below the tags."""
+
+QUAD_OBJ = """\
+# A 1 x 1 quad at z = 0 facing up, the whole texture on it, upright as seen from above.
+v -0.5 -0.5 0.0
+v 0.5 -0.5 0.0
+v 0.5 0.5 0.0
+v -0.5 0.5 0.0
+vt 0.0 0.0
+vt 1.0 0.0
+vt 1.0 1.0
+vt 0.0 1.0
+vn 0.0 0.0 1.0
+f 1/1/1 2/2/1 3/3/1
+f 1/1/1 3/3/1 4/4/1
+"""
+
+
+@dataclass(frozen=True)
+class FloorTag:
+    """Tag ``id`` with its centre at ``position`` on the floor, turned by ``yaw`` radians; ``size`` metres."""
+
+    id: int
+    position: tuple[float, float]
+    yaw: float = 0.0
+    size: float = 0.3
+
+    def corners(self) -> np.ndarray:
+        """The black square's corners in ``map`` (4 x 3), in aruco's order: the printed top-left
+        first, then clockwise as seen from above."""
+        half = self.size / 2.0
+        local = np.array([[-half, half], [half, half], [half, -half], [-half, -half]])
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        turned = local @ np.array([[c, s], [-s, c]]) + np.asarray(self.position, float)
+        return np.c_[turned, np.zeros(4)]
+
+
+def tag_image(tag_id: int, cell_pixels: int = CELL_PIXELS) -> np.ndarray:
+    """The marker with a one-cell white quiet zone: (CELLS + 2) * cell_pixels square, grey uint8."""
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    marker = cv2.aruco.drawMarker(dictionary, tag_id, CELLS * cell_pixels)
+    border = cell_pixels
+    return cv2.copyMakeBorder(marker, border, border, border, border, cv2.BORDER_CONSTANT, value=255)
+
+
+def render_floor_tags(
+    camera: PinholeCamera,
+    tags: list[FloorTag],
+    folder: str | Path,
+    floor_colour: tuple[int, int, int] = (150, 150, 150),
+) -> np.ndarray:
+    """The camera's view (RGB, height x width x 3, uint8) of ``tags`` on a floor; files go to ``folder``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    quad = folder / 'tag_quad.obj'
+    quad.write_text(QUAD_OBJ)
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        plate = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=[100.0, 100.0, 0.01],
+            rgbaColor=[c / 255.0 for c in floor_colour] + [1.0],
+            physicsClientId=client,
+        )
+        pybullet.createMultiBody(0, -1, plate, [0, 0, -FLOOR_DEPTH - 0.01], physicsClientId=client)
+        for tag in tags:
+            texture = folder / f'tag36h11_{tag.id}.png'
+            cv2.imwrite(str(texture), tag_image(tag.id))
+            side = tag.size * (CELLS + 2) / CELLS
+            shape = pybullet.createVisualShape(
+                pybullet.GEOM_MESH, fileName=str(quad), meshScale=[side, side, 1.0], physicsClientId=client
+            )
+            body = pybullet.createMultiBody(
+                0,
+                -1,
+                shape,
+                [*tag.position, 0.0],
+                [0.0, 0.0, math.sin(tag.yaw / 2.0), math.cos(tag.yaw / 2.0)],
+                physicsClientId=client,
+            )
+            texture_id = pybullet.loadTexture(str(texture), physicsClientId=client)
+            pybullet.changeVisualShape(
+                body, -1, textureUniqueId=texture_id, rgbaColor=[1, 1, 1, 1], physicsClientId=client
+            )
+        rgb, _ = render_view(client, camera)
+    finally:
+        pybullet.disconnect(physicsClientId=client)
+    return rgb
