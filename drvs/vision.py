@@ -1,11 +1,19 @@
 """A vision system's processing: run an algorithm on a frame, put each outline on the floor in ``map``.
 
-The algorithm (from :mod:`drvs.algorithms`) finds outlines in pixels. Each
-outline vertex is lifted to 3D with the depth buffer (the depth of the object's
-own pixel at that vertex; the nearest one, which is the top face seen from
-above) and dropped vertically onto the floor. Seen from overhead, the visible
-top face and sides of a box lie straight above its footprint, so a tall box is
-reported where it stands, not where its top appears on a floor-plane projection.
+The algorithm (from :mod:`drvs.algorithms`) finds outlines in pixels. With a
+depth image, each outline vertex is lifted to 3D with it (the depth of the
+object's own pixel at that vertex; the nearest one, which is the top face seen
+from above) and dropped vertically onto the floor. Seen from overhead, the
+visible top face and sides of a box lie straight above its footprint, so a tall
+box is reported where it stands, not where its top appears on a floor-plane
+projection. Without depth (a plain camera), or where the depth image has no
+valid value (0 or NaN, as real depth cameras report holes), the vertex's ray is
+met with the floor plane z = 0: the paper's ground-plane assumption, exact for
+flat things and displaced away from the camera for tall ones.
+
+The camera model of a frame is :class:`drvs.camera.PinholeCamera` (rendered
+frames) or :class:`drvs.optics.CameraModel` (frames from a camera topic); both
+take the same pixel coordinates.
 
 :class:`FrameCache` lets requests that arrive close together share one render.
 """
@@ -40,7 +48,7 @@ def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
     """
     height, width = frame.depth.shape
     contour = outline.astype(np.float32).reshape(-1, 1, 2)
-    depths = np.empty(len(outline))
+    depths = np.full(len(outline), np.nan)
     for i, (u, v) in enumerate(outline):
         cu, cv = int(round(u)), int(round(v))
         found = None
@@ -53,20 +61,32 @@ def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
                     if cv2.pointPolygonTest(contour, (col + 0.5, row + 0.5), False) < 0:
                         continue
                     d = frame.depth[row, col]
+                    if not d > 0:  # a hole in a depth camera's image (0 or NaN)
+                        continue
                     best = d if best is None else min(best, d)
             if best is not None:
                 found = best
                 break
-        if found is None:  # degenerate outline: the nearest pixel whatever it is
+        if found is None:  # degenerate outline: the nearest pixel whatever it is (NaN if a hole)
             found = frame.depth[min(max(cv, 0), height - 1), min(max(cu, 0), width - 1)]
-        depths[i] = found
+        depths[i] = found if found > 0 else np.nan
     return depths
 
 
 def project_outline(frame: Frame, pixel_object: PixelObject) -> list[Polygon]:
     """The floor polygon(s) under an outline found in ``frame``, in ``map``."""
     outline = np.asarray(pixel_object.outline, float)
-    points = frame.camera.pixel_to_point(frame.to_camera(outline), vertex_depths(frame, outline))
+    pixels = frame.to_camera(outline)
+    floor = frame.camera.pixel_to_floor(pixels)
+    if frame.depth is None:
+        points = floor
+    else:
+        points = frame.camera.pixel_to_point(pixels, vertex_depths(frame, outline))
+        holes = ~np.all(np.isfinite(points), axis=1)
+        points[holes] = floor[holes]
+    points = points[np.all(np.isfinite(points), axis=1)]  # rays that never meet the floor
+    if len(points) < 3:
+        return []
     shape = Polygon(points[:, :2]).buffer(0)
     return _polygons(shape)
 

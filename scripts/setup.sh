@@ -20,6 +20,7 @@ APT_PACKAGES=(
   python3-opencv python3-numpy python3-shapely python3-yaml
   python3-matplotlib python3-venv python3-pip python3-psutil
   python3-cachetools python3-hypothesis
+  python3-cv-bridge python3-image-geometry python3-tf2-ros python3-message-filters tf2-tools
 )
 # The test tools and the PyPI wheels, pinned to what the project was checked with.
 PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)
@@ -57,8 +58,8 @@ if [ ! -x "$venv/bin/python" ]; then
   /usr/bin/python3 -m venv --system-site-packages "$venv"
 fi
 py="$venv/bin/python"
-"$py" -c 'import rospy, cv2, numpy, shapely, yaml' 2>/dev/null \
-  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml; delete .venv and run again"
+"$py" -c 'import rospy, cv2, numpy, shapely, yaml, cv_bridge, image_geometry, tf2_ros' 2>/dev/null \
+  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml/cv_bridge/image_geometry/tf2_ros; delete .venv and run again"
 
 pip_missing=()
 for spec in "${PIP_PACKAGES[@]}"; do

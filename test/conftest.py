@@ -2,7 +2,9 @@
 
 ``ros``: a :class:`drvs.testing.RosHarness` per test — a private rosmaster on a
 free port with its own ROS_HOME and log folder; every node started through it
-is stopped at teardown, also when the test fails or times out.
+is stopped at teardown, also when the test fails or times out. ``graph``: the
+same, with this process's environment pointing at that master, so the test can
+call services itself.
 """
 
 import os
@@ -28,6 +30,14 @@ def ros():
         yield harness
     finally:
         harness.close()
+
+
+@pytest.fixture
+def graph(ros, monkeypatch):
+    """The harness, with this process able to call the private master's services."""
+    monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
+    monkeypatch.setenv('ROS_HOSTNAME', '127.0.0.1')
+    return ros
 
 
 def pytest_sessionfinish(session, exitstatus):

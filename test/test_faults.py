@@ -48,14 +48,6 @@ STARTUP = 90.0  # s a node may take to start on a busy two-core machine
 slow = pytest.mark.slow
 
 
-@pytest.fixture
-def graph(ros, monkeypatch):
-    """The harness, with this process able to call the private master's services."""
-    monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
-    monkeypatch.setenv('ROS_HOSTNAME', '127.0.0.1')
-    return ros
-
-
 def wait_for_new_service(ros, node, service, old):
     """Wait until the master lists ``service`` at a URI other than ``old``; fail early if ``node`` exits."""
 

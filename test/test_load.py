@@ -54,14 +54,6 @@ PITCH, SIDE, HALF = 2.0, 2.5, 0.3  # camera grid spacing, field-of-view side, ha
 FDS_TOLERANCE, THREADS_TOLERANCE, RSS_TOLERANCE_KB = 5, 3, 20 * 1024
 
 
-@pytest.fixture
-def graph(ros, monkeypatch):
-    """The harness, with this process able to call the private master's services."""
-    monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
-    monkeypatch.setenv('ROS_HOSTNAME', '127.0.0.1')
-    return ros
-
-
 def start_server(ros, **params):
     server = ros.start_node(SERVER, name='drvs', params=params)
     ros.wait_for_service(DETECT, node=server)

@@ -3,7 +3,6 @@
 import json
 import threading
 
-import pytest
 import yaml
 from shapely.geometry import Polygon
 
@@ -11,31 +10,11 @@ from drvs.ros.service_client import ServiceClient
 from drvs.simulation import loop_of, position_on_loop
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import read_json_lines, wait_for
+from drvs.testing.detect import detect as request
 from drvs.world import box_footprint, load_world
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
-
-
-@pytest.fixture
-def graph(ros, monkeypatch):
-    """The harness, with this process able to call the private master's services."""
-    monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
-    monkeypatch.setenv('ROS_HOSTNAME', '127.0.0.1')
-    return ros
-
-
-def request(service, algorithm, region, request_id, callback=CALLBACK):
-    message = DetectObjectBoundaryRequest(
-        algorithm=algorithm, callback_service=callback, request_id=request_id
-    )
-    r = message.region_of_interest
-    r.min_x, r.min_y, r.max_x, r.max_y = region
-    client = ServiceClient(service, DetectObjectBoundary, 10.0)
-    try:
-        return client.call(message)
-    finally:
-        client.close()
 
 
 def echo_json(ros, topic):

@@ -1,17 +1,46 @@
-"""The vision_system node: one overhead camera of the simulated world, serving DetectObjectBoundary.
+"""The vision_system node: one camera serving DetectObjectBoundary.
 
-It keeps its own PyBullet copy of the world (:class:`drvs.scene.Scene`), in step
-with world_sim's ``/world_sim/poses`` (static at the world file's poses while
-world_sim is absent), and registers the floor area its camera sees with the DRVS
-server. A request is validated and acknowledged at once; a worker then takes a
-frame (rendered, or reused from the frame cache), runs the algorithm, puts the
-outlines on the floor in ``map`` (:mod:`drvs.vision`) and, only if it found at
-least one object, calls the robot back.
+Its frames come from one of two sources (:mod:`drvs.ros.frame_sources`):
 
-Registration: at start, renewed at half the lease the server grants (its
-response's ``lease``), at once when the camera's field of view changes (a camera
-on a moving mount: ``waypoints`` and ``speed`` in its world entry), and removed
-(empty field of view) on a clean shutdown. While the server is unreachable or
+- ``~source:=topic``: any ROS camera. It subscribes to ``image``
+  (sensor_msgs/Image; rgb8, bgr8, mono8, bayer_* or anything else cv_bridge
+  converts to rgb8) or, with ``~compressed``, ``image/compressed``
+  (sensor_msgs/CompressedImage), and ``camera_info`` (sensor_msgs/CameraInfo);
+  the camera's pose is the tf transform ``map`` <- the image's
+  ``header.frame_id`` (its optical frame, REP-103: z forward, x right, y down) at
+  the image's stamp. No world file needed::
+
+      nodes/vision_system __name:=cam1 _source:=topic image:=/cam1/image_raw camera_info:=/cam1/camera_info
+
+  Outlines are undistorted, lifted to rays and met with the floor plane z = 0
+  (the ground-plane assumption: a tall object is reported where its outline
+  falls on the floor seen from the camera, i.e. stretched away from it), or,
+  with ``~depth``, lifted with the aligned depth image ``depth`` (32FC1 metres
+  or 16UC1 millimetres, same stamp as the colour image) so a tall object is
+  reported where it stands.
+- ``~source:=render`` (the default when ``~world`` is given): the simulation
+  shortcut. It keeps its own PyBullet copy of the world, in step with
+  world_sim's ``/world_sim/poses`` (static at the world file's poses while
+  world_sim is absent), and renders its view on demand.
+
+A request is validated and acknowledged at once; a worker then takes a frame,
+runs the algorithm, puts the outlines on the floor in ``map``
+(:mod:`drvs.vision`) and, only if it found at least one object, calls the
+robot back with the frame's stamp (the moment it shows).
+
+Frames from a topic: a request uses the newest frame if it is younger than
+``~max_frame_age``, otherwise it waits for the next one up to
+``~frame_timeout``. A feed without frames for ``~stale_after`` seconds
+unregisters (robots are never routed to a dead camera), refuses requests with
+``UNAVAILABLE``, and registers again when frames return.
+
+Registration: the floor area the camera sees (for a topic: the image's footprint
+on the floor from CameraInfo and tf, distortion-aware, up to ``~max_range``), at
+start (for a topic: once CameraInfo, tf and frames are known), renewed at half
+the lease the server grants (its response's ``lease``), at once when the field
+of view changes by more than ``~move_threshold`` (a camera on a moving mount:
+``waypoints`` and ``speed`` in its world entry, or a moving tf frame), and
+removed (empty field of view) on a clean shutdown. While the server is unreachable or
 refuses with a temporary status (``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, e.g.
 ejected after failed forwards) it retries after the response's ``retry_after``,
 with jitter and growing backoff (:func:`drvs.retry.retry_delay`, at most
@@ -25,16 +54,34 @@ traceback and the loop restarts; one that keeps failing shuts the node down
 
 Parameters (private):
 
-``~world`` (str, required)
+``~source`` (str, default ``render`` with ``~world``, else ``topic``)
+    Where frames come from: ``render`` or ``topic``.
+``~world`` (str, required for ``render``)
     The world file.
 ``~camera`` (str, default: the node's name)
-    Which ``vision_systems`` entry of the world this node is.
+    Which ``vision_systems`` entry of the world this node is (``render``).
+``~compressed`` (bool, default false)
+    ``topic``: subscribe to ``image/compressed`` instead of ``image``.
+``~depth`` (bool, default false)
+    ``topic``: lift outlines with the aligned depth image ``depth``.
+``~max_range`` (float, default 30)
+    ``topic``: metres from the camera beyond which the floor is not part of the field
+    of view (rays towards the horizon).
+``~frame_timeout`` (float, default 1.0)
+    ``topic``: seconds a request waits for a new frame when the newest is too old.
+``~stale_after`` (float, default 3.0)
+    ``topic``: seconds without frames after which the camera unregisters.
+``~tf_timeout`` (float, default 0.5)
+    ``topic``: seconds to wait for the camera's transform at an image's stamp.
+``~map_frame`` (str, default ``map``)
+    ``topic``: the frame outlines and fields of view are given in.
 ``~min_area`` (float, default 20)
     Smallest object, in pixels.
 ``~epsilon`` (float, default 1.0)
     Outline simplification tolerance, in pixels (Douglas-Peucker).
 ``~max_frame_age`` (float, default 0.1)
-    Requests arriving within this many seconds of the last capture reuse it.
+    Requests arriving within this many seconds of the last capture reuse it (``render``);
+    the newest frame is used if its stamp is at most this old (``topic``).
 ``~callback_timeout`` (float, default 2.0)
     Seconds a callback to a robot may take; a failed or hung one is logged and dropped.
 ``~max_callback_clients`` (int, default 64)
@@ -66,7 +113,8 @@ Topics and services:
     e.g. ``/vs1/detect_object_boundary``.
 ``~stats`` (std_msgs/String JSON, latched)
     ``requests``, ``refused``, ``callbacks``, ``callback_failures``, ``callback_bytes``
-    (serialized size of the callbacks sent), ``renders``, ``cache_hits``,
+    (serialized size of the callbacks sent), ``renders`` (frames rendered or decoded),
+    ``no_frame`` (accepted requests dropped because no frame came), ``cache_hits``,
     ``registrations``, ``objects``, and ``requests_by_algorithm`` (accepted requests per
     algorithm string, at most ``MAX_ALGORITHMS_COUNTED`` distinct ones, the rest under
     ``other``); republished when they change.
@@ -90,7 +138,6 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError
-from drvs.camera import PinholeCamera
 from drvs.client_cache import ClosingCache
 from drvs.guard import RESTART, LoopGuard
 from drvs.retry import retry_delay
@@ -100,10 +147,10 @@ from drvs.ros.conversions import (
     points_to_polygon,
     refusal_to_detect_response,
 )
+from drvs.ros.frame_sources import FrameUnavailable, RenderSource, TopicSource
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
-from drvs.scene import Frame, Scene
-from drvs.simulation import mount_position
+from drvs.scene import Frame
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -112,10 +159,10 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceRequest,
 )
-from drvs.status import ACCEPTED, BUSY, INVALID, Refusal, is_temporary
+from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
-from drvs.vision import FrameCache, draw_detections, locate_objects
+from drvs.vision import draw_detections, locate_objects
 from drvs.world import load_world
 
 DEFAULT_LEASE = 10.0
@@ -125,10 +172,21 @@ MAX_ALGORITHMS_COUNTED = 64
 """Distinct algorithm strings counted in ``~stats``; callers choose them, so the count is capped."""
 
 
+SOURCES = ('render', 'topic')
+
+
 @dataclass(frozen=True)
 class VisionSystemParams:
-    world: str
     camera: str
+    world: str = ''
+    source: str = ''
+    compressed: bool = False
+    depth: bool = False
+    max_range: float = 30.0
+    frame_timeout: float = 1.0
+    stale_after: float = 3.0
+    tf_timeout: float = 0.5
+    map_frame: str = 'map'
     min_area: float = 20.0
     epsilon: float = 1.0
     max_frame_age: float = 0.1
@@ -145,7 +203,22 @@ class VisionSystemParams:
     debug_rate: float = 1.0
 
     def __post_init__(self):
-        for name in ('callback_timeout', 'callback_idle', 'register_timeout', 'retry_period'):
+        if not self.source:  # frozen: the resolved default is set once, here
+            object.__setattr__(self, 'source', 'render' if self.world else 'topic')
+        if self.source not in SOURCES:
+            raise ValueError(f'~source: must be one of {", ".join(SOURCES)}, got {self.source!r}')
+        if self.source == 'render' and not self.world:
+            raise ValueError('~world: required with ~source render (or use ~source topic and a camera topic)')
+        for name in (
+            'callback_timeout',
+            'callback_idle',
+            'register_timeout',
+            'retry_period',
+            'max_range',
+            'frame_timeout',
+            'stale_after',
+            'tf_timeout',
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f'~{name}: must be positive, got {getattr(self, name)}')
         for name in ('min_area', 'epsilon', 'max_frame_age', 'move_threshold', 'debug_rate'):
@@ -176,10 +249,11 @@ class VisionSystemNode:
 
     def __init__(self, params: VisionSystemParams):
         self.params = params
-        self.world = load_world(params.world)
-        self.config = self.world.camera(params.camera)
-        self.base_camera = PinholeCamera.from_config(self.config)
-        self.scene: Scene | None = None
+        if params.source == 'render':
+            world = load_world(params.world)
+            self.source = RenderSource(world, world.camera(params.camera), params, self._count)
+        else:
+            self.source = TopicSource(params, self._count)
         self.service_name = ''
         self.stats = dict.fromkeys(
             (
@@ -189,6 +263,7 @@ class VisionSystemNode:
                 'callback_failures',
                 'callback_bytes',
                 'renders',
+                'no_frame',
                 'cache_hits',
                 'registrations',
                 'objects',
@@ -197,9 +272,6 @@ class VisionSystemNode:
         )
         self._stats_lock = threading.Lock()  # guards stats and requests_by_algorithm
         self.requests_by_algorithm: dict[str, int] = {}
-        self._scene_lock = threading.Lock()  # PyBullet is not thread-safe
-        self._poses_lock = threading.Lock()
-        self._poses: dict | None = None
         self._callback_clients = ClosingCache(
             lambda service: ServiceClient(service, CallbackCoordinates, params.callback_timeout),
             maxsize=params.max_callback_clients,
@@ -210,16 +282,12 @@ class VisionSystemNode:
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._registered: list | None = None
         self.lease: float | None = None  # granted by the server at the last registration
-        self._start_time = 0.0
-        self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
-        self.scene = Scene(self.world)
-        self._start_time = rospy.get_time()
         self.stats_pub = rospy.Publisher('~stats', String, queue_size=1, latch=True)
         self.debug_pub = rospy.Publisher('~debug_image', Image, queue_size=1)
-        rospy.Subscriber(self.params.poses_topic, String, self._on_poses, queue_size=1)
+        self.source.start()
         self._register_client = ServiceClient(
             self.params.register_service, RegisterVisionService, timeout=self.params.register_timeout
         )
@@ -232,20 +300,10 @@ class VisionSystemNode:
             self.guard.spawn(self._debug_loop, 'debug', RESTART)
         rospy.on_shutdown(self.stop)
         self._publish_stats()
-        rospy.loginfo(
-            '%s: camera %s at %s looking at %s, %dx%d, fov %.0f deg; serving %s',
-            rospy.get_name(),
-            self.config.name,
-            self.base_camera.eye,
-            self.base_camera.target,
-            self.base_camera.width,
-            self.base_camera.height,
-            self.base_camera.fov_deg,
-            self.service_name,
-        )
+        rospy.loginfo('%s: %s; serving %s', rospy.get_name(), self.source.describe(), self.service_name)
 
     def stop(self) -> None:
-        """Stop the workers, unregister from the server, release the scene."""
+        """Stop the workers, unregister from the server, release the frame source."""
         if self._stopping.is_set():
             return
         self._stopping.set()
@@ -260,38 +318,7 @@ class VisionSystemNode:
             self._call_register([], 'unregister')
         self._register_client.close()
         self._callback_clients.clear()
-        with self._scene_lock:
-            if self.scene is not None:
-                self.scene.close()
-                self.scene = None
-
-    # -- camera and frames ---------------------------------------------------------------------
-    def camera_at(self, stamp: float) -> PinholeCamera:
-        """The camera model at time ``stamp`` (its mount may move along its waypoints)."""
-        if not self.config.moving:
-            return self.base_camera
-        return self.base_camera.moved_to(*mount_position(self.config, stamp - self._start_time))
-
-    def _on_poses(self, message: String) -> None:
-        try:
-            poses = json.loads(message.data)['poses']
-        except (ValueError, KeyError, TypeError) as error:
-            rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
-            return
-        with self._poses_lock:
-            self._poses = poses
-
-    def _capture(self, stamp: float) -> Frame:
-        with self._poses_lock:
-            poses = self._poses
-        with self._scene_lock:
-            if self.scene is None:
-                raise RuntimeError('the vision system is shutting down')
-            if poses:
-                self.scene.apply_poses(poses)
-            frame = self.scene.render(self.camera_at(stamp), stamp)
-        self._count(renders=1)
-        return frame
+        self.source.close()
 
     # -- requests ------------------------------------------------------------------------------
     def _handle_detect(self, request) -> DetectObjectBoundaryResponse:
@@ -303,6 +330,9 @@ class VisionSystemNode:
             )
         except (AlgorithmError, ValidationError) as error:
             return self._refuse(request, Refusal(INVALID, str(error)))
+        problem = self.source.unavailable()
+        if problem:
+            return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
         self._count_algorithm(request.algorithm)
         job = Job(algorithm, request.algorithm, region, request.callback_service, request.request_id, arrival)
         try:
@@ -343,9 +373,12 @@ class VisionSystemNode:
                 )
 
     def _process(self, job: Job) -> None:
-        frame, reused = self.cache.get(job.arrival)
-        if reused:
-            self._count(cache_hits=1)
+        try:
+            frame, reused = self.source.frame(job.arrival)
+        except FrameUnavailable as error:
+            self._count(no_frame=1)
+            rospy.logwarn_throttle(5.0, '%s: request %r dropped: %s', rospy.get_name(), job.request_id, error)
+            return
         outlines = locate_objects(frame, job.algorithm, job.region, self.params.min_area, self.params.epsilon)
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
@@ -383,19 +416,26 @@ class VisionSystemNode:
         last_ok = None
         retry_at = 0.0
         attempt = 0
-        footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
         while not self._stopping.wait(0.05):
             self._callback_clients.expire()  # close idle callback connections even when no request comes
-            if self.config.moving:
-                footprint = self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
+            footprint = self.source.footprint()
+            if footprint is None or (not footprint and not self._registered):
+                continue  # not known yet, or nothing to unregister
             now = time.monotonic()
             moved = self._registered is None or _moved(
                 self._registered, footprint, self.params.move_threshold
             )
-            due = moved or last_ok is None or now - last_ok >= (self.lease or DEFAULT_LEASE) / 2.0
-            if not due or now < retry_at:
+            renew = bool(footprint) and (
+                last_ok is None or now - last_ok >= (self.lease or DEFAULT_LEASE) / 2.0
+            )
+            if not (moved or renew) or now < retry_at:
                 continue
-            what = 'register' if self._registered is None else 'move' if moved else 'renew'
+            if not footprint:
+                what = 'unregister'  # the camera feed went stale
+            elif not self._registered:
+                what = 'register'
+            else:
+                what = 'move' if moved else 'renew'
             wait = self._call_register(footprint, what)
             if wait is None:
                 self._registered = footprint
@@ -431,7 +471,9 @@ class VisionSystemNode:
             return self.params.retry_period
         if response.lease > 0:
             self.lease = float(response.lease)
-        if what != 'renew':
+        if what == 'unregister':
+            rospy.loginfo('%s: unregistered %s', rospy.get_name(), self.service_name)
+        elif what != 'renew':
             rospy.loginfo(
                 '%s: %s %s with field of view %s (lease %s s)',
                 rospy.get_name(),
@@ -468,17 +510,18 @@ class VisionSystemNode:
         while not self._stopping.wait(period):
             if self.debug_pub.get_num_connections() > 0:
                 try:
-                    frame, _ = self.cache.get(rospy.get_time())
-                except RuntimeError:
-                    return
-                self._publish_debug(frame, [])
+                    frame = self.source.newest()
+                except FrameUnavailable:
+                    continue
+                if frame is not None:
+                    self._publish_debug(frame, [])
 
     def _publish_debug(self, frame: Frame, outlines) -> None:
         image = draw_detections(frame, outlines)
         height, width = image.shape[:2]
         message = Image(height=height, width=width, encoding='rgb8', is_bigendian=0, step=width * 3)
         message.header.stamp = rospy.Time.from_sec(frame.stamp)
-        message.header.frame_id = self.config.name
+        message.header.frame_id = self.params.camera
         message.data = np.ascontiguousarray(image).tobytes()
         self.debug_pub.publish(message)
 
