@@ -2,6 +2,7 @@
 # Run one DRVS scenario end to end, without roslaunch.
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
+#                                 [--camera-source render|topic]
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
 # the environment's ROS_MASTER_URI), then drvs_server, world_sim, one
@@ -13,18 +14,26 @@
 # DIR/summary.json and DIR/run.png. Exits 0 only if the robot reached the station.
 # With --stay, DRVS (server, world_sim, vision systems) keeps running after the
 # robot is done, until Ctrl-C, so it can be explored by hand (see the README).
+# With --camera-source topic, the simulation drives the vision systems like real
+# cameras: one sim_camera per camera publishes its rendered colour and depth
+# images, CameraInfo and tf, and each vision_system runs with _source:=topic on
+# them (default: render, each vision system renders its own view on demand).
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-usage() { echo "usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay]" >&2; exit 2; }
+usage() {
+  echo "usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic]" >&2
+  exit 2
+}
 
-world="" timeout=120 out="" external=0 stay=0
+world="" timeout=120 out="" external=0 stay=0 source=render
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
     --out) [ $# -ge 2 ] || usage; out=$2; shift 2 ;;
     --external-master) external=1; shift ;;
     --stay) stay=1; shift ;;
+    --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
     -h|--help) usage ;;
     -*) echo "run_scenario: unknown option $1" >&2; usage ;;
     *) [ -z "$world" ] || usage; world=$1; shift ;;
@@ -33,6 +42,7 @@ done
 [ -n "$world" ] || usage
 [ -f "$world" ] || { echo "run_scenario: world file $world not found" >&2; exit 2; }
 [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "run_scenario: --timeout needs seconds, got $timeout" >&2; exit 2; }
+[[ "$source" =~ ^(render|topic)$ ]] || { echo "run_scenario: --camera-source is render or topic, got $source" >&2; exit 2; }
 [ -x "$root/.venv/bin/python" ] || { echo "run_scenario: no .venv: run scripts/setup.sh (or make demo) first" >&2; exit 2; }
 
 world=$(cd "$(dirname "$world")" && pwd)/$(basename "$world")
@@ -105,7 +115,13 @@ print(" ".join(c.name for c in load_world(sys.argv[1]).vision_systems))' "$world
 start drvs_server "$py" "$root/nodes/drvs_server" __name:=drvs
 start world_sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
 for camera in $cameras; do
-  start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
+  if [ "$source" = topic ]; then
+    start "sim_$camera" "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
+    start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=true \
+      image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
+  else
+    start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
+  fi
 done
 # The case study starts once DRVS is up: every camera registered with the server.
 "$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
@@ -125,7 +141,7 @@ start recorder "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _
 start robot "$py" "$root/nodes/blind_robot" __name:=robot _world:="$world" _once:=true
 robot_pid=${pids[-1]} recorder_pid=${pids[-2]}
 
-echo "run_scenario: $(basename "$world") with ${cameras// /, }; logs in $out"
+echo "run_scenario: $(basename "$world") with ${cameras// /, } ($source); logs in $out"
 started=$SECONDS
 result=timeout
 while [ $((SECONDS - started)) -lt "${timeout%.*}" ]; do

@@ -18,7 +18,7 @@ from drvs.world import load_world
 SCENARIO_TIMEOUT = 150
 
 
-def run_scenario(ros: RosHarness, world: str) -> tuple[int, dict, dict, str]:
+def run_scenario(ros: RosHarness, world: str, camera_source: str = 'render') -> tuple[int, dict, dict, str]:
     out = ros.root / 'out'
     runner = ros.spawn(
         'run_scenario',
@@ -31,6 +31,8 @@ def run_scenario(ros: RosHarness, world: str) -> tuple[int, dict, dict, str]:
             str(SCENARIO_TIMEOUT),
             '--out',
             str(out),
+            '--camera-source',
+            camera_source,
         ],
     )
     wait_for(
@@ -80,8 +82,9 @@ def test_selectivity_far_cameras_see_none_of_the_robot_station_box():
         assert not Polygon(PinholeCamera.from_config(world.camera(far)).floor_footprint()).intersects(region)
 
 
-def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarness):
-    code, summary, trace, logs = run_scenario(ros, 'worlds/localisation.yaml')
+@pytest.mark.parametrize('camera_source', ['render', 'topic'])
+def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarness, camera_source):
+    code, summary, trace, logs = run_scenario(ros, 'worlds/localisation.yaml', camera_source)
     assert code == 0, logs
     assert summary['reached'] is True
     assert summary['collisions'] == 0
@@ -92,9 +95,12 @@ def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarne
         assert summary['vision_systems'][camera]['callbacks'] > 0
 
 
-def test_obstacles_robot_replans_round_the_human_without_collision(ros: RosHarness):
+@pytest.mark.parametrize(
+    'camera_source', ['render', pytest.param('topic', marks=pytest.mark.slow, id='topic')]
+)
+def test_obstacles_robot_replans_round_the_human_without_collision(ros: RosHarness, camera_source):
     world = load_world('worlds/obstacles.yaml')
-    code, summary, trace, logs = run_scenario(ros, 'worlds/obstacles.yaml')
+    code, summary, trace, logs = run_scenario(ros, 'worlds/obstacles.yaml', camera_source)
     assert code == 0, logs
     assert summary['reached'] is True
     assert summary['collisions'] == 0
@@ -111,9 +117,12 @@ def test_obstacles_robot_replans_round_the_human_without_collision(ros: RosHarne
             assert not driven.intersects(Polygon(obstacle.footprint())), obstacle.name
 
 
-def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(ros: RosHarness):
+@pytest.mark.parametrize(
+    'camera_source', ['render', pytest.param('topic', marks=pytest.mark.slow, id='topic')]
+)
+def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(ros: RosHarness, camera_source):
     world = load_world('worlds/selectivity.yaml')
-    code, summary, trace, logs = run_scenario(ros, 'worlds/selectivity.yaml')
+    code, summary, trace, logs = run_scenario(ros, 'worlds/selectivity.yaml', camera_source)
     assert code == 0, logs
     cameras = summary['vision_systems']
     models = world.colour_models

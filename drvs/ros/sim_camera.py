@@ -1,0 +1,416 @@
+"""The sim_camera node: the simulated world's vision systems as ROS camera drivers, on topics and tf.
+
+For each vision system of a world file it publishes what a real camera driver
+would: colour images, aligned depth images, compressed images, CameraInfo and the
+pose of the optical frame on tf, so that a consumer (a vision system in topic
+mode, ``image_view``, ``rviz``) cannot tell it from hardware. The images are
+rendered from one PyBullet copy of the world (:class:`drvs.scene.Scene`) kept in
+step with world_sim's ``/world_sim/poses`` (static at the world file's poses while
+world_sim is absent). A camera with ``distortion`` in its world entry renders the
+larger canvas of its lens and publishes the distorted view (:mod:`drvs.lens`).
+
+A camera is rendered only while someone subscribes to its colour, depth or
+compressed image (checked every cycle), at ``~rate``; the cameras take turns in one
+guarded loop (:class:`drvs.guard.LoopGuard`: PyBullet is not thread-safe). When
+rendering takes longer than a cycle the loop publishes as fast as it can, without
+a burst to catch up. Every image is stamped with the moment it shows: the stamp of
+the poses message it was rendered from, or the render time while no poses have
+arrived. A camera publishes a frame only when that stamp differs from its last
+one: with world_sim stopped, a frame with an old stamp again would only repeat the
+last (and tf would warn of a repeated transform).
+
+Parameters (private):
+
+``~world`` (str, required)
+    The world file.
+``~cameras`` (str or list, default: every vision system of the world)
+    The cameras to publish, comma-separated (``vs1,vs2``) or a YAML list (``[vs1, vs2]``).
+``~rate`` (float, default 10)
+    Frames per second per subscribed camera.
+``~depth`` (bool, default true)
+    Publish depth images.
+``~compression`` (str, default ``jpeg``)
+    ``jpeg`` or ``png``: the format of ``image_raw/compressed``.
+``~jpeg_quality`` (int, default 90)
+    1 to 100.
+``~poses_topic`` (str, default ``/world_sim/poses``)
+    world_sim's pose topic.
+
+Topics, for each camera NAME (relative names: ``/NAME/...`` in the root namespace):
+
+``NAME/image_raw`` (sensor_msgs/Image, rgb8)
+    The view.
+``NAME/camera_info`` (sensor_msgs/CameraInfo)
+    With every view, the same header: ``distortion_model`` plumb_bob, ``D`` the lens's
+    5 coefficients (zeros for an ideal lens), ``K`` the OpenCV intrinsics of the
+    published images, ``R`` identity, ``P`` = [K | 0].
+``NAME/depth/image_raw`` (sensor_msgs/Image, 32FC1), with ``~depth``
+    Metres along the optical axis, aligned with the view: same size, K and header.
+``NAME/image_raw/compressed`` (sensor_msgs/CompressedImage)
+    The view as image_transport's ``compressed`` plugin writes it (format
+    ``rgb8; jpeg compressed bgr8`` or ``rgb8; png compressed bgr8``).
+``~poses_topic`` (std_msgs/String JSON, subscribed)
+
+tf frames:
+
+``map`` -> ``NAME_optical_frame``
+    The camera's optical frame (z forward, x right, y down; :func:`drvs.optics.optical_pose_of`),
+    the ``frame_id`` of its images. A fixed camera's on ``/tf_static`` at start; one on a
+    moving mount (``waypoints`` and ``speed``) on ``/tf`` with each image's stamp, sent
+    before the image. A mount starts its waypoint loop when the node starts (as a vision
+    system in render mode does: :func:`drvs.simulation.mount_position`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import rospy
+import tf2_ros
+from geometry_msgs.msg import TransformStamped
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header, String
+
+from drvs.camera import PinholeCamera
+from drvs.guard import RESTART, LoopGuard
+from drvs.lens import Lens
+from drvs.optics import intrinsics_of, optical_pose_of
+from drvs.ros.params import read_params
+from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
+from drvs.simulation import mount_position
+from drvs.transforms import quaternion_from_matrix
+from drvs.world import Camera, load_world
+
+MAP_FRAME = 'map'
+COMPRESSIONS = ('jpeg', 'png')
+SLOW_LOG_PERIOD = 10.0
+"""Seconds between debug lines saying that rendering falls behind ``~rate``."""
+
+
+@dataclass(frozen=True)
+class SimCameraParams:
+    world: str
+    cameras: str = ''
+    rate: float = 10.0
+    depth: bool = True
+    compression: str = 'jpeg'
+    jpeg_quality: int = 90
+    poses_topic: str = '/world_sim/poses'
+
+    def __post_init__(self):
+        if not self.rate > 0:
+            raise ValueError(f'~rate: must be positive, got {self.rate}')
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f'~compression: must be jpeg or png, got {self.compression!r}')
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f'~jpeg_quality: must be 1 to 100, got {self.jpeg_quality}')
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """The names in ``~cameras``, in order; empty for every camera."""
+        return tuple(name.strip() for name in self.cameras.split(',') if name.strip())
+
+    @classmethod
+    def from_rosparam(cls, get_param=None) -> SimCameraParams:
+        """Every field from ``~name`` (``get_param``: rospy.get_param); ``~cameras`` may be a list."""
+        get_param = get_param or rospy.get_param
+
+        def get(name, default):
+            value = get_param(name, default)
+            if name == '~cameras' and isinstance(value, list):
+                if not all(isinstance(item, str) for item in value):
+                    raise ValueError(f'~cameras: expected camera names (a list of strings), got {value!r}')
+                return ','.join(value)
+            return value
+
+        return read_params(cls, get=get)
+
+
+def selected_cameras(world, names: tuple[str, ...]) -> tuple[Camera, ...]:
+    """The world's vision systems named in ``~cameras`` (all of them for none).
+
+    :raises ValueError: naming the unknown camera and the known ones.
+    """
+    if not names:
+        return tuple(world.vision_systems)
+    known = [camera.name for camera in world.vision_systems]
+    for name in names:
+        if name not in known:
+            raise ValueError(
+                f'~cameras: no vision system named {name!r} in {world.path} (known: {", ".join(known)})'
+            )
+    return tuple(world.camera(name) for name in dict.fromkeys(names))
+
+
+# -- messages ----------------------------------------------------------------------------------
+def image_message(array: np.ndarray, encoding: str, header: Header) -> Image:
+    """A sensor_msgs/Image of an rgb8 (H, W, 3) uint8 or 32FC1 (H, W) float32 array."""
+    array = np.ascontiguousarray(array)
+    height, width = array.shape[:2]
+    return Image(
+        header=header,
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=int(sys.byteorder == 'big'),
+        step=array.strides[0],
+        data=array.tobytes(),
+    )
+
+
+def compressed_message(
+    rgb: np.ndarray, header: Header, compression: str, jpeg_quality: int
+) -> CompressedImage:
+    """An rgb8 image compressed as image_transport's ``compressed`` plugin does (BGR inside)."""
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    if compression == 'jpeg':
+        ok, data = cv2.imencode('.jpg', bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    else:
+        ok, data = cv2.imencode('.png', bgr)
+    if not ok:
+        raise RuntimeError(f'cv2.imencode failed to write {compression} of a {rgb.shape} image')
+    return CompressedImage(header=header, format=f'rgb8; {compression} compressed bgr8', data=data.tobytes())
+
+
+def camera_info_message(K: np.ndarray, D, width: int, height: int, header: Header) -> CameraInfo:
+    """CameraInfo of a camera whose images need no rectifying rotation: R = I, P = [K | 0]."""
+    K = np.asarray(K, float)
+    return CameraInfo(
+        header=header,
+        width=width,
+        height=height,
+        distortion_model='plumb_bob',
+        D=[float(d) for d in D],
+        K=K.flatten().tolist(),
+        R=np.eye(3).flatten().tolist(),
+        P=np.hstack([K, np.zeros((3, 1))]).flatten().tolist(),
+    )
+
+
+def transform_message(rotation, translation, parent: str, child: str, stamp: rospy.Time) -> TransformStamped:
+    """``child``'s pose in ``parent`` (rotation: 3x3, columns are child's axes in parent)."""
+    message = TransformStamped()
+    message.header.stamp = stamp
+    message.header.frame_id = parent
+    message.child_frame_id = child
+    t = message.transform.translation
+    t.x, t.y, t.z = (float(v) for v in translation)
+    q = message.transform.rotation
+    q.x, q.y, q.z, q.w = (float(v) for v in quaternion_from_matrix(rotation))
+    return message
+
+
+# -- the node ----------------------------------------------------------------------------------
+class Feed:
+    """One camera: its optics (ideal, or a lens over a padded canvas), publishers and last stamp."""
+
+    def __init__(self, config: Camera):
+        self.config = config
+        self.camera = PinholeCamera.from_config(config)
+        self.frame_id = f'{config.name}_optical_frame'
+        if config.distortion:
+            self.lens: Lens | None = Lens(self.camera, tuple(config.distortion), TINY_RENDERER_SAMPLE)
+            self.canvas = self.lens.canvas
+            self.K = np.asarray(self.lens.model.K, float)
+            self.D = tuple(float(d) for d in self.lens.model.D)
+        else:
+            self.lens = None
+            self.canvas = self.camera
+            self.K = intrinsics_of(self.camera, TINY_RENDERER_SAMPLE)
+            self.D = (0.0,) * 5
+        self.last_stamp: float | None = None
+        self.image_pub = self.info_pub = self.depth_pub = self.compressed_pub = None
+
+    def advertise(self, depth: bool) -> None:
+        name = self.config.name
+        self.image_pub = rospy.Publisher(f'{name}/image_raw', Image, queue_size=2)
+        self.info_pub = rospy.Publisher(f'{name}/camera_info', CameraInfo, queue_size=2)
+        self.compressed_pub = rospy.Publisher(f'{name}/image_raw/compressed', CompressedImage, queue_size=2)
+        if depth:
+            self.depth_pub = rospy.Publisher(f'{name}/depth/image_raw', Image, queue_size=2)
+
+    def unadvertise(self) -> None:
+        for publisher in (self.image_pub, self.info_pub, self.depth_pub, self.compressed_pub):
+            if publisher is not None:
+                publisher.unregister()
+
+    def subscribed(self) -> bool:
+        """Whether anyone subscribes to the colour, depth or compressed image."""
+        return any(
+            publisher is not None and publisher.get_num_connections() > 0
+            for publisher in (self.image_pub, self.depth_pub, self.compressed_pub)
+        )
+
+    def camera_at(self, elapsed: float, camera: PinholeCamera) -> PinholeCamera:
+        """``camera`` moved with the mount to where it is ``elapsed`` s after the start."""
+        if not self.config.moving:
+            return camera
+        return camera.moved_to(*mount_position(self.config, elapsed))
+
+
+class SimCameraNode:
+    """Renders and publishes the cameras; :meth:`start` does the work, :meth:`stop` undoes it."""
+
+    def __init__(self, params: SimCameraParams):
+        self.params = params
+        self.world = load_world(params.world)
+        self.feeds = []
+        for config in selected_cameras(self.world, params.camera_names):
+            try:
+                self.feeds.append(Feed(config))
+            except ValueError as error:  # a lens that cannot be simulated (drvs.lens)
+                raise ValueError(f'{self.world.path}: vision_systems {config.name}: {error}') from None
+        self.scene: Scene | None = None
+        self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene
+        self._poses_lock = threading.Lock()  # guards _poses and _poses_stamp
+        self._poses: dict | None = None
+        self._poses_stamp: float | None = None
+        self._stopping = threading.Event()
+        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
+        self._start_time = 0.0
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self) -> None:
+        self.scene = Scene(self.world)
+        self._start_time = rospy.get_time()
+        for feed in self.feeds:
+            feed.advertise(self.params.depth)
+        self.tf_broadcaster = tf2_ros.TransformBroadcaster()
+        self.static_broadcaster = tf2_ros.StaticTransformBroadcaster()
+        now = rospy.Time.from_sec(self._start_time)
+        fixed = [self._transform(feed, feed.camera, now) for feed in self.feeds if not feed.config.moving]
+        if fixed:
+            self.static_broadcaster.sendTransform(fixed)
+        rospy.Subscriber(self.params.poses_topic, String, self._on_poses, queue_size=1)
+        self.guard.spawn(self._render_loop, 'render', RESTART)
+        rospy.on_shutdown(self.stop)
+        for feed in self.feeds:
+            rospy.loginfo(
+                '%s: camera %s: %dx%d, fov %.0f deg, %s, %s; frame %s',
+                rospy.get_name(),
+                feed.config.name,
+                feed.camera.width,
+                feed.camera.height,
+                feed.camera.fov_deg,
+                f'lens D={list(feed.D)}' if feed.lens else 'ideal lens',
+                'moving mount' if feed.config.moving else 'fixed',
+                feed.frame_id,
+            )
+        rospy.loginfo(
+            '%s: %d camera(s) at up to %g Hz while subscribed; poses from %s',
+            rospy.get_name(),
+            len(self.feeds),
+            self.params.rate,
+            self.params.poses_topic,
+        )
+
+    def stop(self) -> None:
+        """Stop the loop, withdraw the topics, release the scene (also after the loop failed)."""
+        self._stopping.set()
+        for thread in self.guard.threads:
+            thread.join(timeout=5.0)
+        with self._scene_lock:
+            if self.scene is None:  # stopped already
+                return
+            self.scene.close()
+            self.scene = None
+        for feed in self.feeds:
+            feed.unadvertise()
+
+    # -- poses ---------------------------------------------------------------------------------
+    def _on_poses(self, message: String) -> None:
+        try:
+            data = json.loads(message.data)
+            poses, stamp = data['poses'], float(data['stamp'])
+            if not isinstance(poses, dict) or not math.isfinite(stamp):
+                raise ValueError(f'poses {type(poses).__name__}, stamp {stamp}')
+        except (ValueError, KeyError, TypeError) as error:
+            rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
+            return
+        with self._poses_lock:
+            self._poses, self._poses_stamp = poses, stamp
+
+    # -- rendering -----------------------------------------------------------------------------
+    def _render_loop(self) -> None:
+        period = 1.0 / self.params.rate
+        next_cycle = time.monotonic()
+        while not self._stopping.is_set():
+            started = time.monotonic()
+            published = 0
+            for feed in self.feeds:
+                if self._stopping.is_set():
+                    return
+                if feed.subscribed():
+                    published += self._publish(feed)
+            next_cycle += period
+            delay = next_cycle - time.monotonic()
+            if delay < 0:  # fell behind: go on at once, without a burst to catch up
+                if published:
+                    rospy.logdebug_throttle(
+                        SLOW_LOG_PERIOD,
+                        '%s: %d frame(s) took %.3f s, more than the %.3f s of ~rate: publishing as fast as '
+                        'rendering allows',
+                        rospy.get_name(),
+                        published,
+                        time.monotonic() - started,
+                        period,
+                    )
+                next_cycle, delay = time.monotonic(), 0.0
+            self._stopping.wait(delay)
+
+    def render(self, feed: Feed) -> Frame | None:
+        """The camera's view of the latest poses, distorted by its lens; None if it shows nothing new."""
+        with self._poses_lock:
+            poses, stamp = self._poses, self._poses_stamp
+        if stamp is None:
+            stamp = rospy.get_time()  # no poses yet: the world file's, now
+        if stamp == feed.last_stamp:
+            return None
+        with self._scene_lock:
+            if self.scene is None:  # stopped
+                return None
+            if poses:
+                self.scene.apply_poses(poses)
+            frame = self.scene.render(feed.camera_at(stamp - self._start_time, feed.canvas), stamp)
+        return feed.lens.apply(frame) if feed.lens is not None else frame
+
+    def _publish(self, feed: Feed) -> int:
+        """Render and publish one frame of ``feed`` (tf first); the number of frames published."""
+        frame = self.render(feed)
+        if frame is None:
+            return 0
+        stamp = rospy.Time.from_sec(frame.stamp)
+        if feed.config.moving:
+            camera = feed.camera_at(frame.stamp - self._start_time, feed.camera)
+            self.tf_broadcaster.sendTransform(self._transform(feed, camera, stamp))
+        height, width = frame.rgb.shape[:2]
+        if feed.image_pub.get_num_connections() > 0:
+            feed.image_pub.publish(image_message(frame.rgb, 'rgb8', self._header(feed, stamp)))
+        if feed.depth_pub is not None and feed.depth_pub.get_num_connections() > 0:
+            depth = np.asarray(frame.depth, np.float32)
+            feed.depth_pub.publish(image_message(depth, '32FC1', self._header(feed, stamp)))
+        if feed.compressed_pub.get_num_connections() > 0:
+            feed.compressed_pub.publish(
+                compressed_message(
+                    frame.rgb, self._header(feed, stamp), self.params.compression, self.params.jpeg_quality
+                )
+            )
+        feed.info_pub.publish(camera_info_message(feed.K, feed.D, width, height, self._header(feed, stamp)))
+        feed.last_stamp = frame.stamp
+        return 1
+
+    @staticmethod
+    def _header(feed: Feed, stamp: rospy.Time) -> Header:
+        return Header(stamp=stamp, frame_id=feed.frame_id)  # one each: a publisher sets its own seq
+
+    @staticmethod
+    def _transform(feed: Feed, camera: PinholeCamera, stamp: rospy.Time) -> TransformStamped:
+        rotation, translation = optical_pose_of(camera)
+        return transform_message(rotation, translation, MAP_FRAME, feed.frame_id, stamp)
