@@ -1,9 +1,9 @@
 """sim_camera: the simulated cameras on ROS topics and tf, checked against renders of the same scene.
 
-The live tests subscribe through a grabber node: this file run as a script
-(:func:`grabber_main`) records the topics it is given, as serialized messages,
-one JSON line each, and for every image looks the image's frame up in ``map``
-at the image's stamp, as a consumer would. The test process itself never
+The live tests subscribe through a grabber node (test/nodes/frame_grabber.py):
+it records the topics it is given, as serialized messages, one JSON line each,
+and for every image looks the image's frame up in ``map`` at the image's stamp,
+as a consumer would. The test process itself never
 initialises rospy (one master per test; rospy binds to one for life).
 """
 
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import base64
 import json
-import threading
 from pathlib import Path
 
 import cv2
@@ -45,63 +44,11 @@ DISTORTION = [-0.2, 0.05, 0.001, -0.001, 0.0]  # vs1's in LENS_WORLD
 UNKNOWN_CAMERA = f"~cameras: no vision system named 'vs9' in {WORLD} (known: vs1, vs2, rover)"
 
 
-# -- the grabber (this file as a node) ---------------------------------------------------------
-def grabber_main() -> None:
-    """Record to ``~output`` the first ``~counts[topic]`` messages of each topic, then unsubscribe.
-
-    Each line: ``topic``, ``type``, ``data`` (the serialized message, base64) and, for
-    images, ``lookup``: map -> the image's frame at its stamp (translation, rotation
-    x y z w, stamp) or ``lookup_error``.
-    """
-    import rospy
-    import tf2_ros
-
-    rospy.init_node('grabber')
-    output, counts = rospy.get_param('~output'), rospy.get_param('~counts')
-    tf_buffer = tf2_ros.Buffer(debug=False)
-    tf2_ros.TransformListener(tf_buffer)
-    lock = threading.Lock()  # guards received, subscribers and the file
-    received: dict[str, int] = {}
-    subscribers = {}
-
-    def on_message(message, topic):
-        with lock:
-            if received[topic] >= counts[topic]:
-                return
-            received[topic] += 1
-            if received[topic] == counts[topic]:
-                subscribers[topic].unregister()
-        kind = message._connection_header['type']
-        entry = {'topic': topic, 'type': kind, 'data': base64.b64encode(message._buff).decode()}
-        if kind == 'sensor_msgs/Image':
-            header = Image().deserialize(message._buff).header
-            try:
-                found = tf_buffer.lookup_transform('map', header.frame_id, header.stamp, rospy.Duration(2.0))
-            except tf2_ros.TransformException as error:
-                entry['lookup_error'] = f'{type(error).__name__}: {error}'
-            else:
-                t, q = found.transform.translation, found.transform.rotation
-                entry['lookup'] = {
-                    'translation': [t.x, t.y, t.z],
-                    'rotation': [q.x, q.y, q.z, q.w],
-                    'stamp': found.header.stamp.to_sec(),
-                }
-        with lock, open(output, 'a') as handle:
-            handle.write(json.dumps(entry) + '\n')
-
-    for topic, count in counts.items():
-        received[topic] = 0
-        with lock:
-            subscribers[topic] = rospy.Subscriber(
-                topic, rospy.AnyMsg, on_message, callback_args=topic, queue_size=count
-            )
-    rospy.spin()
-
-
 def start_grabber(ros, counts, name='grabber'):
     """Start a grabber for ``counts`` ({topic: messages to record}); return its output file."""
     output = ros.root / f'{name}.jsonl'
-    ros.start_node(__file__, name=name, params={'output': output, 'counts': json.dumps(counts)})
+    params = {'output': output, 'counts': json.dumps(counts)}
+    ros.start_node('test/nodes/frame_grabber.py', name=name, params=params)
     return output
 
 
@@ -382,7 +329,3 @@ def test_a_lens_that_folds_over_is_refused_naming_the_camera(tmp_path):
         SimCameraNode(params_from(world=str(path)))
     prefix = f'{path}: vision_systems vs1: Lens: distortion [-1.0, 0.0, 0.0, 0.0, 0.0] cannot be undone'
     assert str(error.value).startswith(prefix)  # the rest is drvs.lens's
-
-
-if __name__ == '__main__':
-    grabber_main()

@@ -162,6 +162,7 @@ class TopicSource:
         self._info_problem: str | None = None
         self._info_lock = threading.Lock()
         self._frames_without_info = 0
+        self._info_version = 0  # counts CameraInfo changes: the footprint is computed again
         self._footprint_key = None
         self._footprint: list = []
         self.tf_buffer = None
@@ -200,6 +201,7 @@ class TopicSource:
             if self._info is not None and _same_info(self._info, info):
                 return
             self._info = info
+            self._info_version += 1
             try:
                 self._intrinsics = camera_model_of(info)
                 self._info_problem = None
@@ -312,7 +314,7 @@ class TopicSource:
         if self.feed.stale():
             return []
         with self._info_lock:
-            model, info = self._intrinsics, self._info
+            model, info, version = self._intrinsics, self._info, self._info_version
         if model is None:
             return None
         try:
@@ -320,7 +322,7 @@ class TopicSource:
         except FrameUnavailable as error:
             rospy.logwarn_throttle(10.0, '%s: not registering yet: %s', rospy.get_name(), error)
             return None
-        key = (id(model), rotation.round(6).tobytes(), translation.round(6).tobytes())
+        key = (version, rotation.round(6).tobytes(), translation.round(6).tobytes())
         if key != self._footprint_key:
             self._footprint = model.with_pose(rotation, translation).floor_footprint(self.params.max_range)
             self._footprint_key = key
