@@ -12,6 +12,10 @@ order, possibly late or twice. This module turns them into facts:
   object seen by two cameras is one object) and the object's centroid is the
   fix. An answer to an older request than the current round is superseded and
   ignored; a repeated answer replaces its first copy instead of counting twice.
+  When a role is asked with ``apriltag``, each object is a tag's four corners in
+  a fixed order: the fix is the tag's centre and it has a *heading* (the tag's
+  yaw, :func:`drvs.algorithms.apriltag.tag_pose`, averaged over the cameras that
+  saw it); other algorithms give no heading.
 - Obstacles (``obstacle``, ``human``): each vision system's newest answer per
   role replaces its earlier ones (a late answer to an older request is
   ignored); the robot keeps them in a :class:`drvs.occupancy.ObstacleMemory`.
@@ -29,6 +33,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+from shapely.geometry import Point as Point2
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
@@ -37,6 +42,8 @@ LOCALISATION_ROLES = ('self', 'station')
 OBSTACLE_ROLES = ('obstacle', 'human')
 
 Point = tuple[float, float]
+TAG_MATCH = 0.05
+"""Metres: a tag's centre this close to (or inside) a merged object belongs to it."""
 Box = tuple[float, float, float, float]
 
 
@@ -141,6 +148,7 @@ class Fix:
     stamp: float  # when the frames were captured (mean over the round's answers)
     seq: int
     vision_systems: tuple[str, ...]
+    heading: float | None = None  # radians in map, when the algorithm gives one (a tag)
 
 
 @dataclass(frozen=True)
@@ -152,12 +160,13 @@ class Answer:
     vision_system: str
     stamp: float
     outlines: tuple[Polygon, ...]
+    poses: tuple[tuple[float, float, float], ...] = ()  # (x, y, yaw) of each tag, for apriltag
 
 
 @dataclass
 class _Round:
     seq: int
-    answers: dict[str, tuple[float, list[Polygon]]] = field(default_factory=dict)
+    answers: dict[str, tuple[float, list[Polygon], tuple]] = field(default_factory=dict)
 
 
 class Perception:
@@ -197,8 +206,14 @@ class Perception:
                 f'algorithm: {request_id!r} asked with {self.algorithms[role]!r}, '
                 f'the answer says {algorithm!r}'
             )
+        outlines = [list(points) for points in outlines]
         polygons = tuple(p for p in (to_polygon(points) for points in outlines) if p is not None)
-        answer = Answer(role, seq, vision_system, stamp, polygons)
+        poses = ()
+        if algorithm.split(':', 1)[0] == 'apriltag':
+            from drvs.algorithms.apriltag import tag_pose
+
+            poses = tuple(tag_pose(points) for points in outlines if len(points) == 4)
+        answer = Answer(role, seq, vision_system, stamp, polygons, poses)
         if role in LOCALISATION_ROLES:
             return answer if self._localise(answer) else None
         key = (role, vision_system)
@@ -215,8 +230,8 @@ class Perception:
             return False
         if current is None or answer.seq > current.seq:
             current = self._rounds[answer.role] = _Round(answer.seq)
-        current.answers[answer.vision_system] = (answer.stamp, list(answer.outlines))
-        objects = merge_outlines(o for _, outlines in current.answers.values() for o in outlines)
+        current.answers[answer.vision_system] = (answer.stamp, list(answer.outlines), answer.poses)
+        objects = merge_outlines(o for _, outlines, _ in current.answers.values() for o in outlines)
         if not objects:
             return True
         previous = self._fixes[answer.role]
@@ -226,12 +241,20 @@ class Perception:
             chosen = min(objects, key=lambda o: math.hypot(o.centroid.x - px, o.centroid.y - py))
         else:
             chosen = max(objects, key=lambda o: o.area)
-        stamps = [stamp for stamp, _ in current.answers.values()]
+        stamps = [stamp for stamp, _, _ in current.answers.values()]
+        position, heading = (chosen.centroid.x, chosen.centroid.y), None
+        inside = chosen.buffer(TAG_MATCH)
+        poses = [p for _, _, found in current.answers.values() for p in found]
+        poses = [p for p in poses if inside.contains(Point2(p[0], p[1]))]
+        if poses:
+            position = (sum(p[0] for p in poses) / len(poses), sum(p[1] for p in poses) / len(poses))
+            heading = math.atan2(sum(math.sin(p[2]) for p in poses), sum(math.cos(p[2]) for p in poses))
         self._fixes[answer.role] = Fix(
-            position=(chosen.centroid.x, chosen.centroid.y),
+            position=position,
             outline=chosen,
             stamp=sum(stamps) / len(stamps),
             seq=current.seq,
             vision_systems=tuple(sorted(current.answers)),
+            heading=heading,
         )
         return True

@@ -1,34 +1,48 @@
-"""The registry of vision systems: who sees which part of the floor, for how long, through which connection.
+"""The registry of vision systems: who sees which part of the floor, runs what, through which connection.
 
-Each vision system registers its DetectObjectBoundary service name and its
-field of view (a polygon on the floor, frame ``map``). A registration is a
-lease: it lasts ``lease`` seconds unless renewed by registering again. A moved
-camera registers its new field of view and routing follows at once; an empty
+Each vision system registers its DetectObjectBoundary service name, its field
+of view (a polygon on the floor, frame ``map``) and the names of the algorithms
+it runs (an empty list means the built-ins, :data:`drvs.algorithms.BUILTIN_NAMES`).
+A registration is a lease: it lasts ``lease`` seconds unless renewed by
+registering the same again. A moved camera registers its new field of view, a
+camera with new plugins its new list, and routing follows at once; an empty
 field of view unregisters.
 
 Failures and ejection (like Envoy's outlier detection): a vision system whose
 forwards fail ``max_failures`` times in a row is removed, even while it keeps
-renewing: the count resets only on a new registration, a move or a successful
-forward, never on a renewal. A removed one is then *ejected*: its registrations
-are refused (:class:`drvs.status.Refusal`, ``UNAVAILABLE`` with ``retry_after``)
-for ``ejection_time`` times the number of times it was ejected, at most
-``max_ejection_time``, so a wedged camera cannot flap back in at every renewal
-and swallow robots' requests. A successful forward forgets its past ejections.
-The ejection holds for the *instance* that failed (the server passes the
-service's ``rosrpc://`` URI): a restarted vision system, serving from a new
-address, may register again at once, so a crash and restart costs no waiting.
+renewing: the count resets only on a new registration, a move (or a new
+algorithm list) or a successful forward, never on a renewal. A removed one is
+then *ejected*: its registrations are refused (:class:`drvs.status.Refusal`,
+``UNAVAILABLE`` with ``retry_after``) for ``ejection_time`` times the number of
+times it was ejected, at most ``max_ejection_time``, so a wedged camera cannot
+flap back in at every renewal and swallow robots' requests. A successful
+forward forgets its past ejections. The ejection holds for the *instance* that
+failed (the server passes the service's ``rosrpc://`` URI): a restarted vision
+system, serving from a new address, may register again at once, so a crash and
+restart costs no waiting.
 
-One entry holds everything the server keeps for a vision system: field of view,
-lease, the node that registered it (``provider``) and the connection the server
-forwards through (``client``, made by the caller's factory). All of it changes
-under one lock, ``Registry._lock``, so a removal is atomic: whoever removes an
-entry gets it back (to close its client) and nobody else can see it half gone.
+One entry holds everything the server keeps for a vision system: field of
+view, algorithms, lease, the node that registered it (``provider``) and the
+connection the server forwards through (``client``, made by the caller's
+factory). All of it changes under one lock, ``Registry._lock``, so a removal is
+atomic: whoever removes an entry gets it back (to close its client) and nobody
+else can see it half gone.
 
 :meth:`Registry.match` is the paper's Algorithm 1: the vision systems whose
 field of view meets the region of interest, through a spatial index
-(:mod:`drvs.spatial_index`; touching edges do not count). No ROS here: the
-server (:mod:`drvs.ros.server`) checks who may register what and does the
-forwarding.
+(:mod:`drvs.spatial_index`; touching edges do not count), narrowed to those that
+run the request's algorithm; :meth:`Registry.available_algorithms` tells a
+request for an algorithm nobody runs from one that nobody covering its region
+runs. No ROS here: the server
+(:mod:`drvs.ros.server`) checks who may register what and does the forwarding.
+
+>>> registry = Registry(index=FieldOfViewIndex(background=False))
+>>> registry.register('/vs1', [(0, 0), (2, 0), (2, 2)], algorithms=['colour', 'sift'])
+'registered'
+>>> registry.match((0.5, 0.2, 1.0, 0.4), 'sift'), registry.match((0.5, 0.2, 1.0, 0.4), 'motion')
+(['/vs1'], [])
+>>> registry.available_algorithms()
+['colour', 'sift']
 """
 
 from __future__ import annotations
@@ -42,21 +56,62 @@ from dataclasses import dataclass, field
 
 from shapely.geometry import Polygon
 
+from drvs.algorithms import BUILTIN_NAMES
+from drvs.algorithms.base import NAME_PATTERN
 from drvs.spatial_index import FieldOfViewIndex
 from drvs.status import UNAVAILABLE, Refusal
 from drvs.validation import ValidationError, field_of_view_polygon, region_geometry, region_of_interest
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = ['Refusal', 'Registration', 'Registry', 'ValidationError']
+__all__ = ['Refusal', 'Registration', 'Registry', 'ValidationError', 'algorithm_names']
 
-REGISTERED, MOVED, RENEWED, UNREGISTERED, NOT_REGISTERED = (
+REGISTERED, MOVED, CHANGED, RENEWED, UNREGISTERED, NOT_REGISTERED = (
     'registered',
     'moved',
+    'changed',
     'renewed',
     'unregistered',
     'not registered',
 )
+
+MAX_ALGORITHMS = 64
+"""Most algorithm names one registration may declare."""
+MAX_ALGORITHM_NAME = 64
+"""Longest algorithm name, in characters."""
+
+
+def algorithm_names(names: Sequence[str]) -> frozenset[str]:
+    """The algorithm names a registration declares, checked; an empty list means the built-ins.
+
+    Repeated names count once.
+
+    >>> sorted(algorithm_names([]))
+    ['apriltag', 'colour', 'motion']
+    >>> sorted(algorithm_names(['sift', 'colour', 'sift']))
+    ['colour', 'sift']
+
+    :raises ValidationError: more than :data:`MAX_ALGORITHMS` names; a name that is
+        not a string, longer than :data:`MAX_ALGORITHM_NAME` or not an algorithm NAME
+        (:data:`drvs.algorithms.base.NAME_PATTERN`), naming it as ``algorithms[i]``.
+    """
+    if len(names) > MAX_ALGORITHMS:
+        raise ValidationError(f'algorithms: {len(names)} names, more than the limit of {MAX_ALGORITHMS}')
+    if len(names) == 0:
+        return frozenset(BUILTIN_NAMES)
+    for index, name in enumerate(names):
+        if not isinstance(name, str):
+            raise ValidationError(f'algorithms[{index}]: expected a string, got {type(name).__name__}')
+        if len(name) > MAX_ALGORITHM_NAME:
+            raise ValidationError(
+                f'algorithms[{index}]: {len(name)} characters, longer than the limit of {MAX_ALGORITHM_NAME}'
+            )
+        if not NAME_PATTERN.fullmatch(name):
+            raise ValidationError(
+                f'algorithms[{index}]: {name!r} is not an algorithm NAME '
+                '(a letter, then letters, digits or _, without :PARAMS)'
+            )
+    return frozenset(names)
 
 
 @dataclass(frozen=True)
@@ -69,6 +124,7 @@ class Registration:
     expires_at: float  # on the registry's clock
     provider: str = ''  # caller id of the node that registered it
     instance: str = ''  # which process serves it (the server uses its rosrpc URI)
+    algorithms: frozenset[str] = frozenset(BUILTIN_NAMES)  # the algorithm names it runs
     client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
 
 
@@ -136,18 +192,24 @@ class Registry:
         provider: str = '',
         make_client: Callable[[str], object] | None = None,
         instance: str = '',
+        algorithms: Sequence[str] = (),
     ) -> str:
         """Add, move, renew or (with no vertices) remove ``service_name``.
 
-        Returns what happened: ``'registered'``, ``'moved'``, ``'renewed'`` (same
-        field of view), ``'unregistered'`` or ``'not registered'`` (empty field
-        of view for an unknown name). A new registration and a move reset the
-        failure count; a renewal does not. A new entry gets its client from
-        ``make_client(service_name)`` (called under the lock: it must do no I/O);
-        a moved or renewed one keeps its client. An unregistered entry's client
-        is closed by :meth:`unregister`'s caller: use that to remove.
+        Returns what happened: ``'registered'``, ``'moved'`` (a new field of view),
+        ``'changed'`` (the same field of view, new ``algorithms``), ``'renewed'``
+        (both the same), ``'unregistered'`` or ``'not registered'`` (empty field
+        of view for an unknown name; ``algorithms`` is then ignored). A new
+        registration, a move and a change reset the failure count; a renewal does
+        not. A new entry gets its client from ``make_client(service_name)``
+        (called under the lock: it must do no I/O); a moved, changed or renewed
+        one keeps its client. An unregistered entry's client is closed by
+        :meth:`unregister`'s caller: use that to remove.
 
-        :raises ValidationError: the field of view is not a valid polygon.
+        :param algorithms: the names of the algorithms it runs (:func:`algorithm_names`;
+            empty: the built-ins).
+        :raises ValidationError: the field of view is not a valid polygon, or a name in
+            ``algorithms`` is not valid.
         :raises Refusal: ``UNAVAILABLE``, this instance of the vision system is ejected;
             ``retry_after`` says until when.
         """
@@ -157,6 +219,7 @@ class Registry:
                 removed.client.close()
             return UNREGISTERED if removed is not None else NOT_REGISTERED
         polygon = field_of_view_polygon(field_of_view)
+        names = algorithm_names(algorithms)
         points = tuple((float(p[0]), float(p[1])) for p in field_of_view)
         with self._lock:
             now = self.clock()
@@ -167,19 +230,27 @@ class Registry:
                 client = make_client(service_name) if make_client is not None else None
             else:
                 client = old.client
-            if old is not None and old.field_of_view == points:
-                self._entries[service_name] = Registration(
-                    service_name, points, old.polygon, expires_at, provider, instance, client
-                )
-                change = RENEWED
+            moved = old is None or old.field_of_view != points
+            if moved:
+                change = REGISTERED if old is None else MOVED
             else:
-                self._entries[service_name] = Registration(
-                    service_name, points, polygon, expires_at, provider, instance, client
-                )
+                polygon = old.polygon
+                change = RENEWED if old.algorithms == names else CHANGED
+            self._entries[service_name] = Registration(
+                service_name,
+                points,
+                polygon,
+                expires_at,
+                provider=provider,
+                instance=instance,
+                algorithms=names,
+                client=client,
+            )
+            if moved:
                 self._index.insert(service_name, polygon)
+            if change != RENEWED:
                 self.version += 1
                 self._failures[service_name] = 0
-                change = REGISTERED if old is None else MOVED
             heapq.heappush(self._expiries, (expires_at, service_name))
         return change
 
@@ -218,19 +289,33 @@ class Registry:
         self.version += 1
         return entry
 
-    def match(self, region: Sequence[float]) -> list[str]:
+    def match(self, region: Sequence[float], algorithm: str | None = None) -> list[str]:
         """Service names of the live vision systems whose field of view meets ``region``.
 
         ``region`` is (min_x, min_y, max_x, max_y), checked by
-        :func:`drvs.validation.region_of_interest`. Sorted by name. Expired
-        entries never match, even before :meth:`expire` removes them.
+        :func:`drvs.validation.region_of_interest`. With ``algorithm`` (a NAME), only
+        those that run it. Sorted by name. Expired entries never match, even before
+        :meth:`expire` removes them.
         """
         geometry = region_geometry(region_of_interest(region))
         keys = self._index.query(geometry)
         now = self.clock()
         with self._lock:
-            live = [key for key in keys if (entry := self._entries.get(key)) and entry.expires_at > now]
+            live = [
+                key
+                for key in keys
+                if (entry := self._entries.get(key))
+                and entry.expires_at > now
+                and (algorithm is None or algorithm in entry.algorithms)
+            ]
         return sorted(live)
+
+    def available_algorithms(self) -> list[str]:
+        """The algorithm names that at least one live vision system runs, sorted."""
+        now = self.clock()
+        with self._lock:
+            live = [entry.algorithms for entry in self._entries.values() if entry.expires_at > now]
+        return sorted(frozenset().union(*live))
 
     def expire(self) -> list[Registration]:
         """Remove every entry whose lease has run out; return them (close their clients)."""

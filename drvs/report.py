@@ -44,6 +44,7 @@ class RunRecord:
     grid_resolution: float = 0.05
     vision_systems: dict[str, dict] = field(default_factory=dict)  # name -> stats
     cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
+    tag_poses: list[tuple[float, float, float]] = field(default_factory=list)  # (x, y, heading) seen
 
 
 def path_length(points) -> float:
@@ -119,6 +120,7 @@ def trace(record: RunRecord) -> dict:
         'replan_points': record.replan_points,
         'humans': record.humans,
         'fields_of_view': record.fields_of_view,
+        'tag_poses': record.tag_poses,
     }
 
 
@@ -235,6 +237,22 @@ def draw(record: RunRecord, path: str | Path) -> None:
         axes.plot(xs, ys, '-', color='red', linewidth=2.5, zorder=5, label='driven trajectory')
         axes.plot(
             xs[0], ys[0], 'o', color='green', markeredgecolor='black', markersize=10, zorder=6, label='start'
+        )
+    if record.tag_poses:
+        # The robot's poses as DRVS saw its tag: position and heading, not predicted.
+        xs, ys, headings = (np.asarray(v) for v in zip(*record.tag_poses, strict=True))
+        axes.quiver(
+            xs,
+            ys,
+            np.cos(headings),
+            np.sin(headings),
+            angles='xy',
+            scale_units='xy',
+            scale=1 / 0.25,
+            width=0.004,
+            color='purple',
+            zorder=6,
+            label='tag pose seen (heading)',
         )
     if record.replan_points:
         xs, ys = zip(*record.replan_points, strict=True)

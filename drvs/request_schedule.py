@@ -19,8 +19,9 @@ The rules:
   server's ``retry_after``, doubling from ``base`` to ``cap`` while the role keeps
   failing, plus jitter; an accepted request resets the count. None of these ends
   the mission; the robot's own deadlines (no fix for ``fix_timeout``) do.
-- ``INVALID`` (the request itself is wrong) stops the schedule for good and keeps
-  the server's message in :attr:`RequestSchedule.invalid`: asking again cannot help.
+- ``INVALID`` (the request itself is wrong) and ``UNSUPPORTED`` (no registered
+  vision system runs its algorithm) stop the schedule for good and keep the
+  server's message in :attr:`RequestSchedule.invalid`: asking again cannot help.
 - Rate: requests leave at least ``1 / max_rate`` seconds apart, whatever the
   rounds and the retries, so the robot stays under the server's per-caller rate
   limit (50 requests/s with bursts of 100 by default). With the robot's defaults
@@ -54,7 +55,7 @@ from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
 from drvs.retry import retry_delay
-from drvs.status import ACCEPTED, INVALID, TEMPORARY, name
+from drvs.status import ACCEPTED, INVALID, TEMPORARY, UNSUPPORTED, name
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -191,7 +192,7 @@ class RequestSchedule:
             state.not_before = -math.inf
             return Outcome(ACCEPT)
         self.refused[name(status)] += 1
-        if status == INVALID:
+        if status in (INVALID, UNSUPPORTED):
             self.invalid = (role, message)
             return Outcome(GIVE_UP)
         if status not in TEMPORARY:

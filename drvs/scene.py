@@ -4,7 +4,11 @@ Shared by world_sim (which moves bodies and asks PyBullet for contacts) and by
 each vision system (which keeps its own copy in step and renders its view).
 Every body is a flat-coloured box; the light is ambient only and shadows are
 off, so a pixel shows exactly its body's colour: the floor can never take a
-shade that a colour model matches by accident.
+shade that a colour model matches by accident. A body with a ``tag`` carries it
+on top: a textured quad (:mod:`drvs.tag_images`) :data:`TAG_LIFT` above the box,
+centred on it and turned with it; it has no collision shape, so contacts are the
+box's alone. The textures live in a temporary directory the scene removes on
+:meth:`Scene.close`.
 
 One :class:`Scene` owns one PyBullet client; PyBullet is not thread-safe, so
 callers serialise access (the nodes hold a lock around each call).
@@ -14,12 +18,16 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pybullet
 
 from drvs.camera import PinholeCamera
+from drvs.tag_images import quad_side, write_quad, write_tag_image
 from drvs.world import Body, World
 
 log = logging.getLogger('rosout.' + __name__)
@@ -27,6 +35,8 @@ log = logging.getLogger('rosout.' + __name__)
 FLOOR_THICKNESS = 0.02
 FLOOR_MARGIN = 100.0
 """The floor's visual plate reaches this far beyond ``floor.size`` so no view shows the background."""
+TAG_LIFT = 0.001
+"""A tag lies this far (metres) above its body's top, so the two never fight for the depth buffer."""
 
 
 TINY_RENDERER_SAMPLE = (-0.5, 0.5)
@@ -98,7 +108,11 @@ class Scene:
         self.client = pybullet.connect(pybullet.DIRECT)
         self.bodies: dict[str, int] = {}
         self.sizes: dict[str, tuple[float, float, float]] = {}
+        self.tags: dict[str, int] = {}
+        """The tag quad on top of each body that carries one, by body name."""
         self._poses: dict[str, tuple[float, float, float]] = {}
+        self.texture_folder: Path | None = None
+        """The temporary directory of the tag textures (None without tags); removed by :meth:`close`."""
         width, depth = world.floor_size
         floor = pybullet.createVisualShape(
             pybullet.GEOM_BOX,
@@ -109,8 +123,12 @@ class Scene:
         self.floor = pybullet.createMultiBody(
             0, -1, floor, [width / 2, depth / 2, -FLOOR_THICKNESS / 2], physicsClientId=self.client
         )
-        for body in (world.robot, world.station, *world.objects):
-            self._add(body)
+        try:
+            for body in (world.robot, world.station, *world.objects):
+                self._add(body)
+        except BaseException:
+            self.close()
+            raise
 
     def _add(self, body: Body) -> None:
         half = [s / 2.0 for s in body.size]
@@ -124,7 +142,26 @@ class Scene:
             0, collision, visual, [0, 0, half[2]], physicsClientId=self.client
         )
         self.sizes[body.name] = tuple(body.size)
+        if body.tag is not None:
+            self.tags[body.name] = self._add_tag(body)
         self.set_pose(body.name, body.position[0], body.position[1], body.yaw)
+
+    def _add_tag(self, body: Body) -> int:
+        """A visual-only textured quad showing ``body.tag``; placed by :meth:`set_pose`."""
+        if self.texture_folder is None:
+            self.texture_folder = Path(tempfile.mkdtemp(prefix='drvs_scene_tags_'))
+        quad = write_quad(self.texture_folder)
+        texture = write_tag_image(self.texture_folder, body.tag.family, body.tag.id)
+        side = quad_side(body.tag.family, body.tag.size)
+        shape = pybullet.createVisualShape(
+            pybullet.GEOM_MESH, fileName=str(quad), meshScale=[side, side, 1.0], physicsClientId=self.client
+        )
+        quad_body = pybullet.createMultiBody(0, -1, shape, [0, 0, 0], physicsClientId=self.client)
+        texture_id = pybullet.loadTexture(str(texture), physicsClientId=self.client)
+        pybullet.changeVisualShape(
+            quad_body, -1, textureUniqueId=texture_id, rgbaColor=[1, 1, 1, 1], physicsClientId=self.client
+        )
+        return quad_body
 
     # -- poses ---------------------------------------------------------------------------------
     def set_pose(self, name: str, x: float, y: float, yaw: float) -> None:
@@ -137,6 +174,13 @@ class Scene:
             _quaternion(yaw),
             physicsClientId=self.client,
         )
+        if name in self.tags:
+            pybullet.resetBasePositionAndOrientation(
+                self.tags[name],
+                [x, y, self.sizes[name][2] + TAG_LIFT],
+                _quaternion(yaw),
+                physicsClientId=self.client,
+            )
         self._poses[name] = (x, y, yaw)
 
     def pose(self, name: str) -> tuple[float, float, float]:
@@ -180,6 +224,9 @@ class Scene:
         if self.client is not None:
             pybullet.disconnect(physicsClientId=self.client)
             self.client = None
+        if self.texture_folder is not None:
+            shutil.rmtree(self.texture_folder, ignore_errors=True)
+            self.texture_folder = None
 
     def __enter__(self) -> Scene:
         return self

@@ -6,6 +6,8 @@ and a test checks that both agree. A client acts on the code, never on the text:
 
 - ``INVALID``: the request itself is wrong (the message names the field); sending it
   again unchanged cannot succeed.
+- ``UNSUPPORTED``: no registered vision system runs the request's algorithm (the
+  message lists the algorithms that are available); final, like ``INVALID``.
 - ``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``: temporary; retry after ``retry_after``
   seconds (with jitter, :func:`drvs.retry.retry_delay`). Never a reason to end a mission.
 
@@ -17,7 +19,7 @@ and a test checks that both agree. A client acts on the code, never on the text:
 
 from __future__ import annotations
 
-ACCEPTED, INVALID, BUSY, RATE_LIMITED, UNAVAILABLE = 0, 1, 2, 3, 4
+ACCEPTED, INVALID, BUSY, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED = 0, 1, 2, 3, 4, 5
 
 NAMES = {
     ACCEPTED: 'ACCEPTED',
@@ -25,6 +27,7 @@ NAMES = {
     BUSY: 'BUSY',
     RATE_LIMITED: 'RATE_LIMITED',
     UNAVAILABLE: 'UNAVAILABLE',
+    UNSUPPORTED: 'UNSUPPORTED',
 }
 TEMPORARY = frozenset({BUSY, RATE_LIMITED, UNAVAILABLE})
 

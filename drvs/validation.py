@@ -137,13 +137,15 @@ def global_ros_name(field: str, name: str) -> str:
     return name
 
 
-def request_fields(algorithm: str, box: Sequence[float], callback_service: str):
-    """Check a DetectObjectBoundary request's own fields; return (algorithm object, region).
+def request_fields(algorithm: str, box: Sequence[float], callback_service: str, algorithms=None):
+    """Check a DetectObjectBoundary request's own fields; return (parsed algorithm, region).
 
+    :param algorithms: the :class:`drvs.algorithms.AlgorithmSet` to parse with (default:
+        the built-ins and installed plugins).
     :raises drvs.algorithms.AlgorithmError: for the algorithm (from :func:`parse_algorithm`).
     :raises ValidationError: for the region or the callback service name.
     """
-    model = parse_algorithm(algorithm)
+    model = parse_algorithm(algorithm, algorithms)
     region = region_of_interest(box)
     global_ros_name('callback_service', callback_service)
     return model, region

@@ -73,18 +73,31 @@ def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
     return depths
 
 
-def project_outline(frame: Frame, pixel_object: PixelObject) -> list[Polygon]:
-    """The floor polygon(s) under an outline found in ``frame``, in ``map``."""
+def floor_points(frame: Frame, pixel_object: PixelObject) -> np.ndarray:
+    """The outline's vertices put on the floor, (N, 3) in ``map``; rays that never meet it left out.
+
+    An object that lies flat at a known ``height`` (a tag) is met with that plane;
+    otherwise each vertex is lifted with the depth image and dropped onto the floor,
+    or, without depth, met with the floor plane.
+    """
     outline = np.asarray(pixel_object.outline, float)
     pixels = frame.to_camera(outline)
-    floor = frame.camera.pixel_to_floor(pixels)
-    if frame.depth is None:
-        points = floor
+    if pixel_object.height is not None:
+        points = frame.camera.pixel_to_floor(pixels, z=pixel_object.height)
     else:
-        points = frame.camera.pixel_to_point(pixels, vertex_depths(frame, outline))
-        holes = ~np.all(np.isfinite(points), axis=1)
-        points[holes] = floor[holes]
-    points = points[np.all(np.isfinite(points), axis=1)]  # rays that never meet the floor
+        floor = frame.camera.pixel_to_floor(pixels)
+        if frame.depth is None:
+            points = floor
+        else:
+            points = frame.camera.pixel_to_point(pixels, vertex_depths(frame, outline))
+            holes = ~np.all(np.isfinite(points), axis=1)
+            points[holes] = floor[holes]
+    return points[np.all(np.isfinite(points), axis=1)]
+
+
+def project_outline(frame: Frame, pixel_object: PixelObject) -> list[Polygon]:
+    """The floor polygon(s) under an outline found in ``frame``, in ``map``."""
+    points = floor_points(frame, pixel_object)
     if len(points) < 3:
         return []
     shape = Polygon(points[:, :2]).buffer(0)
@@ -104,22 +117,35 @@ def ring(shape: Polygon) -> Outline:
     return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]
 
 
-def locate_objects(
-    frame: Frame,
-    algorithm,
-    region_of_interest: tuple[float, float, float, float],
-    min_area: float = 20.0,
-    epsilon: float = 1.0,
-) -> list[Outline]:
-    """Outlines on the floor (``map``, counter-clockwise) of the objects ``algorithm`` finds in
-    ``frame`` that intersect ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it."""
+def locate_labelled(
+    frame: Frame, algorithm, region_of_interest: tuple[float, float, float, float]
+) -> list[tuple[Outline, str]]:
+    """(outline, label) on the floor (``map``, counter-clockwise) of each object ``algorithm``
+    (a :class:`drvs.algorithms.Parsed`) finds in ``frame`` that intersects
+    ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
+
+    An object whose vertex order means something (``keep_order``: a tag, corner 0
+    first) is reported whole, in its own order, when it intersects the region.
+    """
     region = box(*region_of_interest)
     found = []
-    for pixel_object in algorithm.detect(frame.rgb, min_area, epsilon):
+    for pixel_object in algorithm.detect(frame):
+        if pixel_object.keep_order:
+            points = floor_points(frame, pixel_object)
+            if len(points) == len(pixel_object.outline) and Polygon(points[:, :2]).intersects(region):
+                found.append(([(float(x), float(y)) for x, y, _ in points], pixel_object.label))
+            continue
         for floor_shape in project_outline(frame, pixel_object):
             for part in _polygons(floor_shape.intersection(region)):
-                found.append(ring(part))
+                found.append((ring(part), pixel_object.label))
     return found
+
+
+def locate_objects(
+    frame: Frame, algorithm, region_of_interest: tuple[float, float, float, float]
+) -> list[Outline]:
+    """The outlines of :func:`locate_labelled`, without labels."""
+    return [outline for outline, _ in locate_labelled(frame, algorithm, region_of_interest)]
 
 
 def draw_detections(frame: Frame, outlines: list[Outline], colour=(255, 0, 255)) -> np.ndarray:

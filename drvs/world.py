@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.tag_images import FAMILIES, FAMILY_NAMES
 
 KINDS = ('static', 'human')
 ROLES = ('self', 'station', 'obstacle', 'human')
@@ -24,8 +25,25 @@ class WorldError(ValueError):
 
 
 @dataclass(frozen=True)
+class Tag:
+    """An AprilTag lying on top of a body, centred, turned with it: ``size`` is its black square's
+    side in metres. Its printed top points along the body's +y axis, its printed right along +x
+    (the body's heading)."""
+
+    family: str
+    id: int
+    size: float
+
+    @property
+    def label(self) -> str:
+        """What the ``apriltag`` algorithm labels it: ``tag36h11:3``."""
+        return f'{self.family}:{self.id}'
+
+
+@dataclass(frozen=True)
 class Body:
-    """A box standing on the floor: footprint centre, size [x, y, z] in metres, yaw in radians."""
+    """A box standing on the floor: footprint centre, size [x, y, z] in metres, yaw in radians;
+    the robot and the station may carry a :class:`Tag` on top."""
 
     name: str
     position: tuple[float, float]
@@ -37,6 +55,7 @@ class Body:
     speed: float = 0.0
     loop: bool = True
     wait_for_robot: bool = False
+    tag: Tag | None = None
 
     @property
     def moving(self) -> bool:
@@ -170,7 +189,9 @@ BODY_KEYS = (
     'speed',
     'loop',
     'wait_for_robot',
+    'tag',
 )
+TAG_KEYS = ('family', 'id', 'size')
 CAMERA_KEYS = (
     'name',
     'position',
@@ -184,7 +205,29 @@ CAMERA_KEYS = (
 )
 
 
-def _body(r: _Reader, data, key: str, default_name: str, moving_allowed: bool) -> Body:
+def _tag(r: _Reader, data, key: str, body_size: tuple[float, float, float]) -> Tag:
+    data = r.mapping(data, key)
+    r.unknown(data, key, TAG_KEYS)
+    for required in TAG_KEYS:
+        if required not in data:
+            raise WorldError(f'{r.path}: {key}.{required}: missing')
+    family = data['family']
+    if family not in FAMILY_NAMES:
+        raise r.fail(f'{key}.family', f'one of {", ".join(FAMILY_NAMES)}', family)
+    count = FAMILIES[family].ids
+    tag_id = data['id']
+    if isinstance(tag_id, bool) or not isinstance(tag_id, int) or not 0 <= tag_id < count:
+        raise r.fail(f'{key}.id', f'an integer 0-{count - 1} (an id of {family})', tag_id)
+    size = r.number(data['size'], f'{key}.size', positive=True)
+    smaller = min(body_size[:2])
+    if size > smaller:
+        raise r.fail(f'{key}.size', f"at most the body's smaller side, {smaller:g} m", size)
+    return Tag(family, tag_id, size)
+
+
+def _body(
+    r: _Reader, data, key: str, default_name: str, moving_allowed: bool, tag_allowed: bool = False
+) -> Body:
     data = r.mapping(data, key)
     r.unknown(data, key, BODY_KEYS)
     for required in ('position', 'size', 'colour'):
@@ -214,16 +257,23 @@ def _body(r: _Reader, data, key: str, default_name: str, moving_allowed: bool) -
             raise r.fail(f'{key}.{flag}', 'true or false', value)
         if value != default and kind != 'human':
             raise WorldError(f'{r.path}: {key}.{flag}: only humans walk; {flag} applies to kind human')
+    size = r.vector(data['size'], f'{key}.size', 3, '[x, y, z]', positive=True)
+    tag = None
+    if 'tag' in data:
+        if not tag_allowed:
+            raise WorldError(f'{r.path}: {key}.tag: only the robot and the station carry a tag')
+        tag = _tag(r, data['tag'], f'{key}.tag', size)
     return Body(
         name=name,
         position=r.vector(data['position'], f'{key}.position', 2, '[x, y]'),
-        size=r.vector(data['size'], f'{key}.size', 3, '[x, y, z]', positive=True),
+        size=size,
         colour=r.colour(data['colour'], f'{key}.colour'),
         yaw=r.number(data.get('yaw', 0.0), f'{key}.yaw'),
         kind=kind,
         waypoints=waypoints,
         speed=speed,
         **flags,
+        tag=tag,
     )
 
 
@@ -315,10 +365,17 @@ def load_world(path: str | Path) -> World:
     floor_colour = r.colour(floor.get('colour', [255, 255, 255]), 'floor.colour')
 
     robot_data = r.mapping(data['robot'], 'robot')
-    robot = _body(r, {k: v for k, v in robot_data.items() if k != 'speed'}, 'robot', 'robot', False)
+    robot = _body(
+        r, {k: v for k, v in robot_data.items() if k != 'speed'}, 'robot', 'robot', False, tag_allowed=True
+    )
     speed = r.number(robot_data.get('speed', 0.4), 'robot.speed', positive=True)
     robot = Body(**{**robot.__dict__, 'speed': speed})
-    station = _body(r, data['station'], 'station', 'station', False)
+    station = _body(r, data['station'], 'station', 'station', False, tag_allowed=True)
+    if robot.tag is not None and station.tag is not None and robot.tag.label == station.tag.label:
+        raise WorldError(
+            f'{path}: station.tag: {station.tag.label} is also robot.tag; '
+            'each tag (family and id) may be on one body only'
+        )
 
     objects_data = data.get('objects') or []
     if not isinstance(objects_data, list):
@@ -351,7 +408,7 @@ def load_world(path: str | Path) -> World:
             model = parse_algorithm(text)
         except AlgorithmError as error:
             raise WorldError(f'{path}: colour_models.{role}: {error}') from None
-        if _matches(model, floor_colour):
+        if model.name == 'colour' and _matches(model.params, floor_colour):
             raise WorldError(
                 f'{path}: floor.colour: {list(floor_colour)} is matched by colour_models.{role} '
                 f'({text}); the floor must be a colour that no colour model matches'

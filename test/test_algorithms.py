@@ -8,9 +8,9 @@ from drvs.algorithms import MAX_LENGTH, AlgorithmError, ColourModel, parse_algor
 
 
 def test_colour_parses_and_formats_back():
-    model = parse_algorithm('colour:0,0,150,80,80,255')
-    assert model == ColourModel((0, 0, 150), (80, 80, 255))
-    assert parse_algorithm(model.format()) == model
+    parsed = parse_algorithm('colour:0,0,150,80,80,255')
+    assert (parsed.name, parsed.params) == ('colour', ColourModel((0, 0, 150), (80, 80, 255)))
+    assert parse_algorithm(parsed.params.format()).params == parsed.params
 
 
 @pytest.mark.parametrize(
@@ -18,9 +18,22 @@ def test_colour_parses_and_formats_back():
     [
         ('', 'algorithm: empty; expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255'),
         ('colour:' + '1,' * 300, f'algorithm: 607 characters, longer than the limit of {MAX_LENGTH}'),
-        ('colour', "algorithm: expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255, got 'colour'"),
-        (':1,2', "algorithm: expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255, got ':1,2'"),
-        ('sift:1', "algorithm: unknown NAME 'sift'; known: colour"),
+        (
+            'colour',
+            'algorithm: colour PARAMS must be 6 comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, '
+            "got 1 value(s) in ''",
+        ),
+        (
+            ':1,2',
+            'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
+            "e.g. colour:0,0,150,80,80,255, got ':1,2'",
+        ),
+        (
+            '9lives:1',
+            'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
+            "e.g. colour:0,0,150,80,80,255, got '9lives:1'",
+        ),
+        ('sift:1', "algorithm: unknown NAME 'sift'; known: apriltag, colour, motion"),
         (
             'colour:1,2,3',
             'algorithm: colour PARAMS must be 6 comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, '

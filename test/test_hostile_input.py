@@ -61,7 +61,15 @@ from shapely.geometry import Polygon
 from test_server import CALLBACK, Graph, square
 
 from drvs import status
-from drvs.algorithms import MAX_LENGTH, AlgorithmError, ColourModel, parse_algorithm
+from drvs.algorithms import (
+    BUILTIN_NAMES,
+    MAX_LENGTH,
+    AlgorithmError,
+    ColourModel,
+    default_algorithms,
+    parse_algorithm,
+    split_algorithm,
+)
 from drvs.msg import BoundingBox
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
@@ -128,14 +136,15 @@ def algorithm_texts(draw) -> str:
 @given(algorithm_texts())
 def test_parse_algorithm_returns_a_model_or_an_algorithm_error(text):
     try:
-        model = parse_algorithm(text)
+        parsed = parse_algorithm(text)
     except AlgorithmError as error:
         assert str(error).startswith('algorithm: '), str(error)
         return
+    model = parsed.params
     assert isinstance(model, ColourModel)
     assert all(0 <= low <= high <= 255 for low, high in zip(model.lower, model.upper, strict=True))
     assert len(text) <= MAX_LENGTH
-    assert parse_algorithm(model.format()) == model  # what the vision systems will run
+    assert parse_algorithm(model.format()).params == model  # what the vision systems will run
 
 
 ANY_FLOATS = st.one_of(
@@ -313,7 +322,7 @@ def test_request_fields_refuse_with_the_field_of_the_first_problem(algorithm, bo
         assert str(error).startswith(('region_of_interest: ', 'callback_service: ')), str(error)
         parse_algorithm(algorithm)  # the algorithm is checked first: it must be fine
         return
-    assert parse_algorithm(algorithm) == model
+    assert parse_algorithm(algorithm).params == model.params
     assert region == tuple(box)
     assert callback.startswith('/')
 
@@ -574,13 +583,23 @@ class ExpectedServer:
 
     def detect(self, algorithm: str, box, callback: str) -> tuple[int, str, list[str]]:
         """(status, message, the vision systems it is forwarded to)."""
+        # As the server does: algorithms it has are parsed in full, other names only for syntax
+        # (a vision system with that plugin may register); then the region and the callback.
         try:
-            request_fields(algorithm, box, callback)
+            name, _ = split_algorithm(algorithm)
+            if name in default_algorithms():
+                parse_algorithm(algorithm)
+            region_of_interest(box)
+            global_ros_name('callback_service', callback)
         except (AlgorithmError, ValidationError) as error:
             return status.INVALID, str(error), []
         refusal = self._check_service('callback_service', callback, CallbackCoordinates._type)
         if refusal:
             return (*refusal, [])
+        if self.entries and name not in BUILTIN_NAMES:  # its cameras register the built-in set
+            available = ', '.join(BUILTIN_NAMES)
+            message = f'algorithm: no registered vision system runs {name!r}; available: {available}'
+            return status.UNSUPPORTED, message, []
         region = region_geometry(box)
         names = sorted(name for name, entry in self.entries.items() if interiors_intersect(entry[2], region))
         if not names:
@@ -733,7 +752,9 @@ def test_random_requests_get_ack_or_invalid(ros, fuzz_graph, count, request):
                 else:
                     own = [MOVER, 'detect_object_boundary', '~detect_object_boundary']
                     name, points = fuzz.name(own if caller == '/mover' else [CAMERA, MOVER]), fuzz.points()
-                call = RegisterVisionService._request_class(name, points_to_polygon(points))
+                call = RegisterVisionService._request_class(
+                    service_name=name, field_of_view=points_to_polygon(points)
+                )
                 client = register_clients[caller]
             try:
                 answer = client.call(call)
@@ -785,7 +806,7 @@ def test_random_requests_get_ack_or_invalid(ros, fuzz_graph, count, request):
         f'UNAVAILABLE (master timed out): {len(unavailable)}'
     )
     assert not problems, f'{len(problems)} wrong answers, first ones:\n' + '\n'.join(problems[:20])
-    assert set(counts) <= {'ACCEPTED', 'INVALID', 'UNAVAILABLE'}, counts
+    assert set(counts) <= {'ACCEPTED', 'INVALID', 'UNSUPPORTED', 'UNAVAILABLE'}, counts
     assert counts['UNAVAILABLE'] == len(unavailable)
     assert alive and tracebacks == 0, graph.server.describe()
 
@@ -964,8 +985,8 @@ def test_garbage_on_the_wire_leaves_the_server_serving(ros, wire_graph, request)
             if name.startswith('invalid UTF-8'):  # replaced by U+FFFD, then refused by name
                 assert (answer.status, answer.message) == (
                     status.INVALID,
-                    'algorithm: expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255, '
-                    "got '\ufffd\ufffd\\x00colour'",
+                    'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
+                    "e.g. colour:0,0,150,80,80,255, got '\ufffd\ufffd\\x00colour'",
                 ), name
             else:
                 assert answer.status == status.ACCEPTED, (name, answer)

@@ -41,7 +41,11 @@ def square(x, y, side=0.5):
     'cls, slots, types',
     [
         (BoundingBox, ['min_x', 'min_y', 'max_x', 'max_y'], ['float64'] * 4),
-        (DetectedObject, ['boundary', 'bounding_box'], ['geometry_msgs/Polygon', 'drvs/BoundingBox']),
+        (
+            DetectedObject,
+            ['boundary', 'bounding_box', 'label'],
+            ['geometry_msgs/Polygon', 'drvs/BoundingBox', 'string'],
+        ),
         (
             DetectObjectBoundaryRequest,
             ['algorithm', 'region_of_interest', 'callback_service', 'request_id'],
@@ -59,8 +63,8 @@ def square(x, y, side=0.5):
         ),
         (
             RegisterVisionServiceRequest,
-            ['service_name', 'field_of_view'],
-            ['string', 'geometry_msgs/Polygon'],
+            ['service_name', 'field_of_view', 'algorithms'],
+            ['string', 'geometry_msgs/Polygon', 'string[]'],
         ),
         (
             RegisterVisionServiceResponse,

@@ -63,7 +63,7 @@ def views(tmp_path_factory):
 
 
 def mask_of(world, frame, name):
-    return parse_algorithm(world.colour_models[MODELS[name]]).mask(frame.rgb) > 0
+    return parse_algorithm(world.colour_models[MODELS[name]]).params.mask(frame.rgb) > 0
 
 
 def centroid(mask):
@@ -161,7 +161,7 @@ def test_outlines_through_the_lens_lie_on_the_true_footprint(views, name, body):
     frame = frames['barrel']
     truth = Polygon(box_footprint(body['position'], body['size'][:2], body['yaw']))
     algorithm = parse_algorithm(world.colour_models[MODELS[name]])
-    outline = max(algorithm.detect(frame.rgb, 20, 1.0), key=lambda o: o.area).outline
+    outline = max(algorithm.detect(frame), key=lambda o: o.area).outline
     points = lenses['barrel'].model.pixel_to_point(outline, vertex_depths(frame, outline))
     found = Polygon(points[:, :2])
     for corner in truth.exterior.coords[:-1]:

@@ -1,8 +1,11 @@
-"""The registry: register, move, renew, unregister, leases and failure counts (no ROS)."""
+"""The registry: register, move, renew, unregister, leases, failure counts and algorithms (no ROS)."""
+
+import doctest
 
 import pytest
 
-from drvs.registry import Registry, ValidationError
+import drvs.registry
+from drvs.registry import Registry, ValidationError, algorithm_names
 from drvs.spatial_index import FieldOfViewIndex
 from drvs.status import UNAVAILABLE, Refusal
 from drvs.testing import ManualClock
@@ -215,3 +218,91 @@ def test_background_rebuild_keeps_changes_made_during_it():
     index.rebuild_now()
     assert registry.match((-1, -1, 600, 1)) == []
     assert len(registry.match((-1, 9, 600, 11))) == 500
+
+
+# -- algorithms ---------------------------------------------------------------------------------
+
+
+def test_doctests():
+    assert doctest.testmod(drvs.registry).failed == 0
+
+
+def test_an_empty_algorithm_list_means_the_built_ins():
+    assert algorithm_names([]) == frozenset({'apriltag', 'colour', 'motion'})
+    assert algorithm_names(['sift', 'colour', 'sift']) == frozenset({'colour', 'sift'})
+    assert algorithm_names(['a' * 64, 'B_2']) == frozenset({'a' * 64, 'B_2'})
+
+
+NAME_RULE = '(a letter, then letters, digits or _, without :PARAMS)'
+
+
+@pytest.mark.parametrize(
+    'names, message',
+    [
+        (['colour', 'colour:1,2'], f"algorithms[1]: 'colour:1,2' is not an algorithm NAME {NAME_RULE}"),
+        ([''], f"algorithms[0]: '' is not an algorithm NAME {NAME_RULE}"),
+        (['2d'], f"algorithms[0]: '2d' is not an algorithm NAME {NAME_RULE}"),
+        (['sift\n'], f"algorithms[0]: 'sift\\n' is not an algorithm NAME {NAME_RULE}"),
+        (['ok', 'a' * 65], 'algorithms[1]: 65 characters, longer than the limit of 64'),
+        (['ok', 7], 'algorithms[1]: expected a string, got int'),
+        ([f'a{n}' for n in range(65)], 'algorithms: 65 names, more than the limit of 64'),
+    ],
+)
+def test_bad_algorithm_names_are_refused_and_change_nothing(registry, names, message):
+    with pytest.raises(ValidationError) as caught:
+        algorithm_names(names)
+    assert str(caught.value) == message
+    registry.register('/a', square(0, 0), algorithms=['colour'])
+    with pytest.raises(ValidationError) as caught:
+        registry.register('/a', square(0, 0), algorithms=names)
+    assert str(caught.value) == message
+    assert registry.get('/a').algorithms == frozenset({'colour'})
+
+
+def test_match_only_the_vision_systems_that_run_the_algorithm(registry):
+    registry.register('/plain', square(0, 0), algorithms=['colour'])
+    registry.register('/tags', square(0, 0), algorithms=['colour', 'apriltag'])
+    registry.register('/plugin', square(0, 0), algorithms=['sift'])
+    registry.register('/builtin', square(5, 5))
+    region = (0.5, 0.5, 0.6, 0.6)
+    assert registry.match(region) == ['/plain', '/plugin', '/tags']
+    assert registry.match(region, 'colour') == ['/plain', '/tags']
+    assert registry.match(region, 'apriltag') == ['/tags']
+    assert registry.match(region, 'sift') == ['/plugin']
+    assert registry.match(region, 'motion') == []
+    assert registry.match((5.5, 5.5, 5.6, 5.6), 'motion') == ['/builtin']
+    assert registry.get('/builtin').algorithms == frozenset({'apriltag', 'colour', 'motion'})
+    assert registry.available_algorithms() == ['apriltag', 'colour', 'motion', 'sift']
+
+
+def test_available_algorithms_are_those_of_live_entries(registry, clock):
+    assert registry.available_algorithms() == []
+    registry.register('/a', square(0, 0), algorithms=['sift'])
+    clock.now += 6
+    registry.register('/b', square(0, 0), algorithms=['surf'])
+    assert registry.available_algorithms() == ['sift', 'surf']
+    clock.now += 4  # /a's lease ran out, though expire() has not removed it yet
+    assert registry.available_algorithms() == ['surf']
+    assert registry.match((0, 0, 1, 1), 'sift') == []
+    registry.unregister('/b')
+    assert registry.available_algorithms() == []
+
+
+def test_a_new_algorithm_list_is_a_change_and_the_same_one_a_renewal(registry, clock):
+    assert registry.register('/a', square(0, 0), algorithms=['colour', 'sift']) == 'registered'
+    version = registry.version
+    assert registry.register('/a', square(0, 0), algorithms=['sift', 'colour', 'sift']) == 'renewed'
+    assert registry.version == version
+    registry.record_failure('/a')
+    registry.record_failure('/a')
+    assert registry.register('/a', square(0, 0), algorithms=['sift']) == 'changed'
+    assert registry.version == version + 1
+    assert registry.failures('/a') == 0  # like a move
+    assert registry.match((0, 0, 1, 1), 'colour') == []
+    assert registry.match((0, 0, 1, 1), 'sift') == ['/a']
+    clock.now += 9
+    assert registry.register('/a', square(3, 3), algorithms=[]) == 'moved'  # both: a move
+    assert registry.match((3, 3, 4, 4), 'colour') == ['/a']
+    assert registry.register('/a', square(3, 3), algorithms=['apriltag', 'colour', 'motion']) == 'renewed'
+    clock.now += 9.5
+    assert registry.expire() == []  # each registration renewed the lease

@@ -11,7 +11,7 @@ import drvs.request_schedule
 from drvs.rate_limit import RateLimiter
 from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
 from drvs.ros.robot import RobotParams, request_schedule
-from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE
+from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED
 from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 3.0, 3.0)
@@ -208,6 +208,18 @@ def test_invalid_gives_up_for_good_with_the_servers_message(schedule, clock):
     schedule.post({'self': FLOOR, 'station': FLOOR})
     assert schedule.next_request() is None
     assert schedule.wait_time() is None
+
+
+def test_unsupported_gives_up_for_good_like_invalid(schedule, clock):
+    schedule.post({'self': FLOOR, 'station': FLOOR})
+    schedule.next_request()
+    message = "algorithm: no registered vision system runs 'apriltag'; available: colour"
+    assert schedule.on_response('self', UNSUPPORTED, message=message) == Outcome(GIVE_UP)
+    assert schedule.invalid == ('self', message)
+    assert schedule.refused == {'UNSUPPORTED': 1}
+    clock.now += 1.0
+    schedule.post({'self': FLOOR, 'station': FLOOR})
+    assert schedule.next_request() is None
 
 
 def test_an_unknown_status_is_retried_and_warned_about_once(schedule, clock, caplog):

@@ -24,6 +24,7 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
         'uint8 BUSY=2',
         'uint8 RATE_LIMITED=3',
         'uint8 UNAVAILABLE=4',
+        'uint8 UNSUPPORTED=5',
         'bool accepted',
         'uint8 status',
         'string message',
@@ -36,12 +37,14 @@ def test_rossrv_show_lists_the_registration_lease_and_status(ros: RosHarness):
     result = ros.run('rossrv show drvs/RegisterVisionService')
     assert result.returncode == 0, result.stderr
     lines = [line.strip() for line in result.stdout.splitlines() if line.strip()]
+    assert 'string[] algorithms' in lines[: lines.index('---')]
     assert lines[lines.index('---') + 1 :] == [
         'uint8 ACCEPTED=0',
         'uint8 INVALID=1',
         'uint8 BUSY=2',
         'uint8 RATE_LIMITED=3',
         'uint8 UNAVAILABLE=4',
+        'uint8 UNSUPPORTED=5',
         'bool accepted',
         'uint8 status',
         'string message',
@@ -61,6 +64,8 @@ def test_rosmsg_show_prints_the_contract(ros: RosHarness, message, first_field):
     result = ros.run(f'rosmsg show {message}')
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines()[0] == first_field
+    if message == 'drvs/DetectedObject':
+        assert 'string label' in result.stdout.splitlines()
 
 
 def test_rosservice_call_typed_in_a_shell_reaches_a_node(ros: RosHarness):

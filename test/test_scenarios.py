@@ -6,6 +6,7 @@ per camera, the recorder and blind_robot — against the test's private master
 """
 
 import json
+import math
 
 import pytest
 from shapely.geometry import LineString, Point, Polygon, box
@@ -137,3 +138,21 @@ def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(ros: 
         assert cameras[near]['requests_by_algorithm'].get(models['obstacle'], 0) > 0, near
         assert cameras[near]['callbacks'] > 0, near
     assert summary['reached'] is True
+
+
+def test_tags_the_robot_sees_its_pose_and_heading_and_finds_the_human_by_motion(ros: RosHarness):
+    """The fourth scenario: tags for the robot and its station, ``motion`` for the human."""
+    world = load_world('worlds/tags.yaml')
+    assert world.colour_models['human'] == 'motion'  # no colour model for the human
+    code, summary, trace, logs = run_scenario(ros, 'worlds/tags.yaml')
+    assert code == 0, logs
+    assert summary['reached'] is True
+    assert summary['collisions'] == 0
+    poses = trace['tag_poses']
+    assert len(poses) >= 5, logs  # the picture has the poses the cameras saw
+    headings = sorted(abs(math.remainder(heading - world.robot.yaw, math.tau)) for _, _, heading in poses)
+    assert math.degrees(headings[len(headings) // 2]) <= 3.0  # seen, not predicted: the body's yaw
+    walker = next(o for o in world.objects if o.kind == 'human')
+    stand = Point(walker.waypoints[-1]).buffer(walker.size[0] / 2)
+    driven = LineString([(x, y) for _, x, y in trace['trajectory']])
+    assert not driven.intersects(stand)

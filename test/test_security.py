@@ -48,6 +48,10 @@ VS1 = '/vs1/detect_object_boundary'
 VS2 = '/vs2/detect_object_boundary'
 
 
+def registration(service_name, field_of_view):
+    return RegisterVisionService._request_class(service_name=service_name, field_of_view=field_of_view)
+
+
 @pytest.fixture
 def graph(ros, monkeypatch, tmp_path):
     made = []
@@ -76,11 +80,9 @@ def test_a_vision_system_may_not_move_or_unregister_another(ros, graph):
     # vs2, itself a registered provider, speaks for itself (its own caller id) about vs1's service.
     as_vs2 = ServiceClient(REGISTER, RegisterVisionService, 10.0, caller_id='/vs2')
     try:
-        moved = as_vs2.call(RegisterVisionService._request_class(VS1, points_to_polygon(square(5, 5, 6, 6))))
-        dropped = as_vs2.call(RegisterVisionService._request_class(VS1, Polygon()))
-        renewed = as_vs2.call(
-            RegisterVisionService._request_class(VS2, points_to_polygon(square(5, 5, 6, 6)))
-        )
+        moved = as_vs2.call(registration(VS1, points_to_polygon(square(5, 5, 6, 6))))
+        dropped = as_vs2.call(registration(VS1, Polygon()))
+        renewed = as_vs2.call(registration(VS2, points_to_polygon(square(5, 5, 6, 6))))
     finally:
         as_vs2.close()
     assert (moved.status, moved.accepted, moved.message) == (
@@ -139,9 +141,7 @@ def test_the_server_refuses_to_register_its_own_service(ros, graph):
     g.camera('cam', square(0, 0, 2, 2))
     spoofed = ServiceClient(REGISTER, RegisterVisionService, 10.0, caller_id='/drvs')
     try:
-        answer = spoofed.call(
-            RegisterVisionService._request_class(DETECT, points_to_polygon(square(0, 0, 2, 2)))
-        )
+        answer = spoofed.call(registration(DETECT, points_to_polygon(square(0, 0, 2, 2))))
     finally:
         spoofed.close()
     assert g.detect((0.5, 0.5, 1.0, 1.0), request_id='once').vision_systems == 1
@@ -169,7 +169,7 @@ def test_a_fast_caller_is_rate_limited_while_another_is_served(ros, graph):
         # /a sends as fast as it can: its burst is served, then it is refused. Each refused
         # detect is followed at once by a registration from /a: both services share its bucket,
         # so (unless a token refilled in between, then it goes on) that is refused too.
-        unregister = RegisterVisionService._request_class('/a/nothing', Polygon())
+        unregister = registration('/a/nothing', Polygon())
         started, answers = time.monotonic(), []
         while len(answers) < 100:
             answers.append(a.call(detect_request(request_id=f'a{len(answers)}')))

@@ -10,7 +10,7 @@ from shapely.geometry import Polygon
 from drvs.algorithms import ColourModel, outlines_of_mask, parse_algorithm
 
 BLUE = (0, 0, 200)
-MODEL = parse_algorithm('colour:0,0,150,80,80,255')
+MODEL = parse_algorithm('colour:0,0,150,80,80,255').params
 
 Setup = namedtuple('Setup', 'name corners iou_min')
 SHAPES = [

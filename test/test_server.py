@@ -10,6 +10,7 @@ from drvs.msg import BoundingBox
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
+from drvs.status import INVALID, UNSUPPORTED
 from drvs.testing import read_json_lines, wait_for
 
 SERVER = 'nodes/drvs_server'
@@ -66,7 +67,8 @@ class Graph:
         return self.detect_client.call(request)
 
     def register(self, service_name, points):
-        return self.register_client.call(RegisterVisionService._request_class(service_name, points))
+        request = RegisterVisionService._request_class(service_name=service_name, field_of_view=points)
+        return self.register_client.call(request)
 
     def registry_topic(self):
         result = self.ros.run('rostopic echo -n 1 -p /drvs/registry', timeout=30)
@@ -200,10 +202,10 @@ def test_invalid_inputs_are_refused_and_the_server_keeps_serving(ros, make_graph
             ({'algorithm': ''}, 'algorithm: empty; expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255'),
             ({'algorithm': 'c' * 600}, 'algorithm: 600 characters, longer than the limit of 512'),
             (
-                {'algorithm': 'colour'},
-                "algorithm: expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255, got 'colour'",
+                {'algorithm': '2d:round'},
+                'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
+                "e.g. colour:0,0,150,80,80,255, got '2d:round'",
             ),
-            ({'algorithm': 'shape:round'}, "algorithm: unknown NAME 'shape'; known: colour"),
             (
                 {'algorithm': 'colour:1,2,3'},
                 'algorithm: colour PARAMS must be 6 comma-separated integers '
@@ -230,7 +232,19 @@ def test_invalid_inputs_are_refused_and_the_server_keeps_serving(ros, make_graph
                 algorithm=fields.get('algorithm', COLOUR),
                 callback=fields.get('callback', CALLBACK),
             )
-            assert (answer.accepted, answer.vision_systems, answer.message) == (False, 0, message)
+            assert (answer.accepted, answer.status, answer.vision_systems, answer.message) == (
+                False,
+                INVALID,
+                0,
+                message,
+            )
+        # A NAME no registered vision system runs (vs1 registered none: the built-ins).
+        answer = graph.detect((0, 0, 1, 1), algorithm='shape:round')
+        assert (answer.accepted, answer.status, answer.message) == (
+            False,
+            UNSUPPORTED,
+            "algorithm: no registered vision system runs 'shape'; available: apriltag, colour, motion",
+        )
         # A caller of the wrong type is refused by the transport, and the server goes on.
         client = ServiceClient('/drvs/detect_object_boundary', CallbackCoordinates, 5.0)
         with pytest.raises(ServiceCallError, match='md5sums do not match'):

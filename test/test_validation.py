@@ -116,8 +116,12 @@ def test_bad_callback_service(name, message):
     [
         ('', 'algorithm: empty; expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255'),
         ('x' * 513, 'algorithm: 513 characters, longer than the limit of 512'),
-        ('colour', "algorithm: expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255, got 'colour'"),
-        ('shape:round', "algorithm: unknown NAME 'shape'; known: colour"),
+        (
+            'colour',
+            'algorithm: colour PARAMS must be 6 comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, '
+            "got 1 value(s) in ''",
+        ),
+        ('shape:round', "algorithm: unknown NAME 'shape'; known: apriltag, colour, motion"),
         ('colour:0,0,0,300,0,0', 'algorithm: colour RMAX must be in 0-255, got 300'),
     ],
 )
@@ -129,5 +133,5 @@ def test_request_fields_use_the_shared_algorithm_parser(algorithm, message):
 
 def test_request_fields_accepts_a_good_request():
     model, region = request_fields('colour:0,0,150,80,80,255', (0, 0, 1, 2), '/robot/callback_coordinates')
-    assert model.format() == 'colour:0,0,150,80,80,255'
+    assert model.params.format() == 'colour:0,0,150,80,80,255'
     assert region == (0.0, 0.0, 1.0, 2.0)

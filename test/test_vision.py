@@ -51,7 +51,7 @@ def test_the_renderer_samples_where_the_scene_module_says(tmp_path):
     camera = PinholeCamera.from_config(world.vision_systems[0])
     with Scene(world) as scene:
         frame = scene.render(camera)
-    mask = parse_algorithm(world.colour_models['obstacle']).mask(frame.rgb) > 0
+    mask = parse_algorithm(world.colour_models['obstacle']).params.mask(frame.rgb) > 0
     corners = camera.project_3d_to_pixel([(x, y, 0.001) for x, y in world.objects[0].footprint()])
     (u_min, v_min), (u_max, v_max) = corners.min(axis=0), corners.max(axis=0)
     rows, cols = np.mgrid[0 : camera.height, 0 : camera.width]
@@ -89,7 +89,7 @@ def test_the_depth_buffer_puts_a_tall_box_where_it_stands(accuracy):
     frame = frames['vs1']
     tall = Polygon(next(o for o in world.objects if o.name == 'tall').footprint())
     model = parse_algorithm(world.colour_models['obstacle'])
-    pixel_object = max(model.detect(frame.rgb), key=lambda o: o.area)
+    pixel_object = max(model.detect(frame), key=lambda o: o.area)
     flat = Polygon(frame.camera.pixel_to_floor(frame.to_camera(pixel_object.outline))[:, :2])
     assert flat.centroid.distance(tall.centroid) > 0.05
     assert iou(flat, tall) < 0.8

@@ -23,7 +23,7 @@ import time
 
 import rospy
 
-from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.algorithms import AlgorithmError, default_algorithms, parse_algorithm, split_algorithm
 from drvs.msg import BoundingBox
 from drvs.retry import retry_delay
 from drvs.ros.conversions import polygon_to_points
@@ -61,8 +61,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     parser.add_argument('--server', default='/drvs/detect_object_boundary', help='the DRVS server service')
     args = parser.parse_args(argv)
-    try:
-        parse_algorithm(args.algorithm)
+    try:  # as the server does: in full what this installation has, else the syntax only (a plugin)
+        name, _ = split_algorithm(args.algorithm)
+        if name in default_algorithms():
+            parse_algorithm(args.algorithm)
     except AlgorithmError as error:
         parser.error(str(error))
     return args
@@ -75,7 +77,10 @@ def format_callback(request) -> str:
     for i, detected in enumerate(request.objects):
         box = detected.bounding_box
         points = ' '.join(f'({x:.3f}, {y:.3f})' for x, y in polygon_to_points(detected.boundary))
-        lines.append(f'  [{i}] bounds x {box.min_x:.3f}..{box.max_x:.3f}, y {box.min_y:.3f}..{box.max_y:.3f}')
+        label = f' {detected.label}' if detected.label else ''
+        lines.append(
+            f'  [{i}]{label} bounds x {box.min_x:.3f}..{box.max_x:.3f}, y {box.min_y:.3f}..{box.max_y:.3f}'
+        )
         lines.append(f'      outline {points}')
     return '\n'.join(lines)
 

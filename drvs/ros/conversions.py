@@ -37,9 +37,12 @@ def bounds_of(points: Iterable[Sequence[float]]) -> Box:
     return (min(xs), min(ys), max(xs), max(ys))
 
 
-def points_to_detected_object(points: Sequence[Sequence[float]]) -> DetectedObject:
-    """An outline (counter-clockwise on the floor) -> drvs/DetectedObject with its bounding box."""
-    return DetectedObject(boundary=points_to_polygon(points), bounding_box=box_to_msg(bounds_of(points)))
+def points_to_detected_object(points: Sequence[Sequence[float]], label: str = '') -> DetectedObject:
+    """An outline (counter-clockwise on the floor) and its label -> drvs/DetectedObject with its
+    bounding box."""
+    return DetectedObject(
+        boundary=points_to_polygon(points), bounding_box=box_to_msg(bounds_of(points)), label=label
+    )
 
 
 def refusal_to_detect_response(refusal: Refusal) -> DetectObjectBoundaryResponse:

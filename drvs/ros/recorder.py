@@ -43,6 +43,8 @@ from drvs.world import load_world
 CLOCK_TICKS = os.sysconf('SC_CLK_TCK')
 TRACE_STEP = 0.01
 """Metres between two recorded trajectory points."""
+TAG_POSE_STEP = 0.4
+"""Metres between two tag poses kept for the picture (one arrow every this far)."""
 
 
 def process_cpu_seconds(pid: int) -> float | None:
@@ -118,6 +120,10 @@ class RecorderNode:
             if not self.record.reached:
                 self.record.elapsed = now - self._first_status
             self.record.reached = self.record.reached or self.record.state == 'arrived'
+            pose = status.get('tag_pose')
+            poses = self.record.tag_poses
+            if pose and (not poses or math.dist(poses[-1][:2], pose[:2]) >= TAG_POSE_STEP):
+                poses.append(tuple(float(v) for v in pose))
             self._status = status
 
     def _on_path(self, msg: PathMsg) -> None:

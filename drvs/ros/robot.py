@@ -109,7 +109,9 @@ arriving, arrived, failed), reason, replans, distance_to_goal, position, goal,
 path_length, requests (sent), failed_requests (no response), refused (refusals
 per status name, e.g. ``{"BUSY": 3}``), callbacks, refused_callbacks,
 superseded, obstacles, vision_systems (per role, how many its last accepted
-request reached), stamp (ROS time of the tick).
+request reached), stamp (ROS time of the tick); when the robot's ``self`` model is
+an ``apriltag``, also tag_pose ([x, y, heading] of its newest fix: the heading
+seen by the cameras, not predicted) and tag_stamp (when those frames were taken).
 """
 
 from __future__ import annotations
@@ -123,6 +125,7 @@ from dataclasses import dataclass
 import rospy
 from geometry_msgs.msg import Pose, PoseStamped, Twist, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
+from shapely.geometry import Polygon
 from std_msgs.msg import String
 
 from drvs.controller import FAILED, FINAL_STATES, Controller, ControllerSettings
@@ -149,12 +152,14 @@ from drvs.srv import (
     DetectObjectBoundaryRequest,
 )
 from drvs.status import name as status_name
-from drvs.world import load_world
+from drvs.world import box_footprint, load_world
 
 MAX_STAMP_AGE = 2.0
 """Seconds; a callback stamped older than this (or in the future) is timed by its arrival instead."""
 IDLE_WAIT = 0.5
 """Seconds the idle requester sleeps at most before it checks for a stop (a new round wakes it at once)."""
+BODY_MARGIN = 0.08
+"""Metres around the robot's body (placed by its tag) within which moving regions are the robot itself."""
 
 
 @dataclass(frozen=True)
@@ -231,6 +236,7 @@ class BlindRobot:
         self.floor_size = world.floor_size
         self.speed = params.speed or world.robot.speed
         size = world.robot.size
+        self.robot_size = tuple(size[:2])
         self.robot_radius = (
             params.robot_radius if params.robot_radius is not None else math.hypot(size[0], size[1]) / 2
         )
@@ -471,6 +477,11 @@ class BlindRobot:
             merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
             objects.extend(merged)
         bodies = [f.outline for f in (fix, station) if f is not None]
+        if fix is not None and fix.heading is not None:
+            # A tag is smaller than the robot: its own body, where the tag says, is not an obstacle
+            # (motion finds the robot moving), with a margin for the time between the frames.
+            body = Polygon(box_footprint(fix.position, self.robot_size, fix.heading)).buffer(BODY_MARGIN)
+            bodies.append(body)
         objects = exclude_bodies(objects, bodies)
         self._obstacles = len(objects)
         changes = self.grid.apply(objects)
@@ -496,6 +507,9 @@ class BlindRobot:
                 superseded=self.perception.superseded,
                 vision_systems=dict(self._vision_systems),
             )
+            fix = self.perception.fix('self')
+            if fix is not None and fix.heading is not None:  # asked with apriltag: seen, not predicted
+                status.update(tag_pose=[fix.position[0], fix.position[1], fix.heading], tag_stamp=fix.stamp)
         status.update(obstacles=self._obstacles, stamp=now)
         self.status_pub.publish(String(json.dumps(status)))
         if controller.path is not self._last_path:

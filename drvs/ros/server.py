@@ -1,23 +1,36 @@
-"""The DRVS server node: registry of vision systems, Algorithm 1 matching, concurrent forwarding.
+"""The DRVS server node: registry of vision systems, Algorithm 1 matching by capability, forwarding.
 
 Services (in the node's namespace; run it as ``__name:=drvs``). Every response
 carries a ``status`` (:mod:`drvs.status`): ``ACCEPTED``; ``INVALID`` with a
-message naming the field; or a temporary ``BUSY`` / ``RATE_LIMITED`` /
-``UNAVAILABLE`` with ``retry_after`` seconds.
+message naming the field; ``UNSUPPORTED`` (no registered vision system runs the
+algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
+``retry_after`` seconds.
 
 - ``~register_vision_service`` (drvs/RegisterVisionService): a vision system
-  registers, moves (new field of view) or renews its entry; an empty field of
-  view unregisters. The response grants a ``lease``: renew at half of it.
-  ``INVALID`` when the polygon is invalid (fewer than 3 vertices, a coordinate
-  not finite, zero area, self-intersecting), the service is unknown to the
-  master or not a drvs/DetectObjectBoundary, or the caller is not the node that
+  registers, moves (new field of view), changes (new ``algorithms``) or renews
+  its entry; an empty field of view unregisters. ``algorithms`` lists the
+  algorithm names it runs, an empty list meaning the built-ins
+  (:data:`drvs.algorithms.BUILTIN_NAMES`). The response grants a ``lease``:
+  renew at half of it. ``INVALID`` when the polygon is invalid (fewer than 3
+  vertices, a coordinate not finite, zero area, self-intersecting), a name in
+  ``algorithms`` is not an algorithm NAME (or there are too many,
+  :func:`drvs.registry.algorithm_names`), the service is unknown to the master
+  or not a drvs/DetectObjectBoundary, or the caller is not the node that
   provides it. ``UNAVAILABLE`` while the vision system is ejected after failed
   forwards (:mod:`drvs.registry`) or when the master does not answer.
-- ``~detect_object_boundary`` (drvs/DetectObjectBoundary): a robot's request.
-  Validated (algorithm through :func:`drvs.algorithms.parse_algorithm`, region
-  of interest, callback service: a global name, known to the master, of type
-  drvs/CallbackCoordinates), matched against the registry, queued for every
-  matching vision system, and acknowledged at once with ``vision_systems`` set.
+- ``~detect_object_boundary`` (drvs/DetectObjectBoundary): a robot's request,
+  checked in this order. ``INVALID``: the algorithm — in full when the server
+  knows its NAME (the built-ins and the plugins installed where the server runs,
+  :func:`drvs.algorithms.default_algorithms`), else its ``NAME[:PARAMS]`` syntax
+  only (the vision systems that run it check its PARAMS) —, the region of
+  interest, the callback service (a global name, known to the master, of type
+  drvs/CallbackCoordinates). ``UNSUPPORTED`` when no registered vision system
+  runs the algorithm's NAME; the message lists the names that are available.
+  (While no vision system at all is registered nothing is known about what will
+  be: the request is accepted and sent to none, as for a robot started before
+  the cameras.) Then it is matched against the registry — the vision systems
+  whose field of view meets the region *and* that run the algorithm —, queued
+  for each of them, and acknowledged at once with ``vision_systems`` set.
   Forwards carry every field unchanged; they run on a bounded pool of workers,
   one persistent connection per vision system (:class:`ServiceClient`, re-created
   after a failure), each call limited to ``~forward_timeout``. ``BUSY`` when the
@@ -30,8 +43,9 @@ with bursts of ``~burst`` (a token bucket, :mod:`drvs.rate_limit`); the excess
 is refused with ``RATE_LIMITED``.
 
 Topic: ``~registry`` (std_msgs/String, latched): JSON
-``{"vision_systems": [{"service_name": ..., "provider": ..., "field_of_view": [[x, y], ...]}, ...]}``
-sorted by name, republished after every change (registration, move,
+``{"vision_systems": [{"service_name": ..., "provider": ..., "field_of_view": [[x, y], ...],
+"algorithms": [name, ...]}, ...]}`` sorted by service name (algorithms sorted too),
+republished after every change (registration, move, change of algorithms,
 unregistration, expiry, removal; not renewals), at most once per
 ``~registry_period``.
 
@@ -39,7 +53,7 @@ Parameters:
 
 - ``~lease`` (s, default 10): a registration lasts this long unless renewed.
 - ``~max_failures`` (default 3): consecutive failed forwards that remove a vision
-  system; renewals do not reset the count.
+  system; renewals do not reset the count (a move or a new algorithm list does).
 - ``~ejection_time`` (s, default 10): a removed vision system's registrations are
   refused for this long times the number of its ejections ...
 - ``~max_ejection_time`` (s, default 300): ... but never longer than this.
@@ -63,8 +77,9 @@ Parameters:
 Background loops (lease expiry, registry publisher) are guarded
 (:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
 traceback and the loop restarts; one that keeps failing shuts the node down
-with exit code 1. Logs: info for register, move, unregister, expiry, removal and
-ejection; debug per forward.
+with exit code 1. Logs: info for register (with the algorithms), move, change of
+algorithms, unregister, expiry, removal and ejection, and for every refused
+request; debug per forward.
 """
 
 from __future__ import annotations
@@ -80,11 +95,20 @@ import rosgraph.names
 import rospy
 from std_msgs.msg import String
 
-from drvs.algorithms import AlgorithmError
+from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
 from drvs.dispatch import Busy, Dispatcher
 from drvs.guard import RESTART, LoopGuard
 from drvs.rate_limit import RateLimiter
-from drvs.registry import MOVED, NOT_REGISTERED, REGISTERED, RENEWED, Registration, Registry
+from drvs.registry import (
+    CHANGED,
+    MOVED,
+    NOT_REGISTERED,
+    REGISTERED,
+    RENEWED,
+    Registration,
+    Registry,
+    algorithm_names,
+)
 from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
 from drvs.ros.params import read_params
 from drvs.ros.service_client import (
@@ -103,8 +127,14 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceResponse,
 )
-from drvs.status import ACCEPTED, INVALID, RATE_LIMITED, UNAVAILABLE, Refusal, name
-from drvs.validation import ValidationError, field_of_view_polygon, request_fields, ros_name
+from drvs.status import ACCEPTED, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
+from drvs.validation import (
+    ValidationError,
+    field_of_view_polygon,
+    global_ros_name,
+    region_of_interest,
+    ros_name,
+)
 
 __all__ = ['ServerSettings', 'DrvsServer']
 
@@ -193,9 +223,11 @@ class DrvsServer:
         self._changed = threading.Condition()
         self._dirty = True
         self._registry_publisher = None
+        self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
+        self.algorithms = default_algorithms()
         self._registry_publisher = rospy.Publisher('~registry', String, queue_size=1, latch=True)
         self.dispatcher.start()
         self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
@@ -204,13 +236,14 @@ class DrvsServer:
         rospy.Service('~detect_object_boundary', DetectObjectBoundary, self.handle_detect)
         rospy.loginfo(
             'DRVS server ready: lease %g s, max_failures %d, forward_timeout %g s, %d workers, '
-            'rate limit %g/s (burst %d) per caller',
+            'rate limit %g/s (burst %d) per caller; algorithms checked in full: %s',
             self.settings.lease,
             self.settings.max_failures,
             self.settings.forward_timeout,
             self.settings.workers,
             self.settings.max_requests_per_s,
             self.settings.burst,
+            ', '.join(self.algorithms.names()),
         )
 
     def stop(self) -> None:
@@ -281,6 +314,7 @@ class DrvsServer:
             return self._unregister(service, entry, caller)
         try:
             field_of_view_polygon(points)
+            algorithms = algorithm_names(request.algorithms)
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
         if entry is not None and entry.provider == caller:  # a renewal or move by the verified provider
@@ -291,14 +325,29 @@ class DrvsServer:
             ).uri
         try:
             change = self.registry.register(
-                service, points, provider=caller, make_client=self._make_client, instance=instance
+                service,
+                points,
+                provider=caller,
+                make_client=self._make_client,
+                instance=instance,
+                algorithms=sorted(algorithms),
             )
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
         if change == REGISTERED:
-            rospy.loginfo('registered %s by %s: field of view %s', service, caller, points)
+            rospy.loginfo(
+                'registered %s by %s: field of view %s, algorithms %s',
+                service,
+                caller,
+                points,
+                ', '.join(sorted(algorithms)),
+            )
         elif change == MOVED:
-            rospy.loginfo('moved %s: field of view %s', service, points)
+            rospy.loginfo(
+                'moved %s: field of view %s, algorithms %s', service, points, ', '.join(sorted(algorithms))
+            )
+        elif change == CHANGED:
+            rospy.loginfo('changed %s: algorithms %s', service, ', '.join(sorted(algorithms)))
         else:
             rospy.logdebug('renewed %s', service)
         if change != RENEWED:
@@ -401,20 +450,15 @@ class DrvsServer:
         if limited:
             raise limited
         try:
-            _, region = request_fields(
-                request.algorithm, msg_to_box(request.region_of_interest), request.callback_service
-            )
+            algorithm = self._algorithm_name(request.algorithm)
+            region = region_of_interest(msg_to_box(request.region_of_interest))
+            global_ros_name('callback_service', request.callback_service)
         except (AlgorithmError, ValidationError) as error:
             raise Refusal(INVALID, str(error)) from None
         self._check_callback(request.callback_service)
-        names = self.registry.match(region)
+        names = self.registry.match(region, algorithm)
         if not names:
-            return DetectObjectBoundaryResponse(
-                accepted=True,
-                status=ACCEPTED,
-                message='no vision system covers the region of interest',
-                vision_systems=0,
-            )
+            return self._sent_to_none(region, algorithm)
         forward = DetectObjectBoundaryRequest(
             algorithm=request.algorithm,
             region_of_interest=request.region_of_interest,
@@ -426,7 +470,7 @@ class DrvsServer:
             rospy.logwarn('request %s: skipped busy vision systems %s', request.request_id, skipped)
         if not accepted:
             raise Busy(
-                f'busy: all {len(names)} vision systems covering the region have '
+                f'busy: all {len(names)} vision systems that cover the region and run {algorithm!r} have '
                 f'{self.settings.max_pending_per_vision_system} forwards pending; try again later',
                 self.settings.busy_retry_after,
             )
@@ -436,6 +480,34 @@ class DrvsServer:
         return DetectObjectBoundaryResponse(
             accepted=True, status=ACCEPTED, message=message, vision_systems=len(accepted)
         )
+
+    def _algorithm_name(self, text: str) -> str:
+        """The NAME of the request's algorithm, checked in full if the server knows it, else its syntax.
+
+        :raises AlgorithmError: bad syntax; PARAMS that a known algorithm refuses.
+        """
+        algorithm, _ = split_algorithm(text)
+        if algorithm in self.algorithms:
+            self.algorithms.parse(text)
+        return algorithm
+
+    def _sent_to_none(self, region, algorithm: str) -> DetectObjectBoundaryResponse:
+        """The answer to a valid request that no vision system will get: why none.
+
+        :raises Refusal: ``UNSUPPORTED`` when vision systems are registered and none runs ``algorithm``.
+        """
+        available = self.registry.available_algorithms()
+        if available and algorithm not in available:
+            raise Refusal(
+                UNSUPPORTED,
+                f'algorithm: no registered vision system runs {algorithm!r}; '
+                f'available: {", ".join(available)}',
+            )
+        if available and self.registry.match(region):
+            message = f'no vision system that runs {algorithm!r} covers the region of interest'
+        else:
+            message = 'no vision system covers the region of interest'
+        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message=message, vision_systems=0)
 
     def _check_callback(self, service: str) -> None:
         """Check the callback service, trusting a check made within ``~callback_cache`` seconds.
@@ -531,6 +603,7 @@ class DrvsServer:
                         'service_name': entry.service_name,
                         'provider': entry.provider,
                         'field_of_view': [list(point) for point in entry.field_of_view],
+                        'algorithms': sorted(entry.algorithms),
                     }
                     for entry in self.registry.entries()
                 ]

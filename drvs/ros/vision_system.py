@@ -34,7 +34,9 @@ Frames from a topic: a request uses the newest frame if it is younger than
 unregisters (robots are never routed to a dead camera), refuses requests with
 ``UNAVAILABLE``, and registers again when frames return.
 
-Registration: the floor area the camera sees (for a topic: the image's footprint
+Registration: the names of the algorithms it runs (the built-ins and every
+plugin installed: :func:`drvs.algorithms.load_algorithms`; the server routes to it
+only requests for those) and the floor area the camera sees (for a topic: the image's footprint
 on the floor from CameraInfo and tf, distortion-aware, up to ``~max_range``), at
 start (for a topic: once CameraInfo, tf and frames are known), renewed at half
 the lease the server grants (its response's ``lease``), at once when the field
@@ -75,6 +77,14 @@ Parameters (private):
     ``topic``: seconds to wait for the camera's transform at an image's stamp.
 ``~map_frame`` (str, default ``map``)
     ``topic``: the frame outlines and fields of view are given in.
+``~tag_height`` (float, default 0)
+    Metres above the floor of the plane AprilTags lie on, unless the request says
+    (``apriltag:FAMILY:IDS:h=H``); with a world file, the tags on its robot and station
+    are known to lie on top of them.
+``~motion_rate`` (float, default 5)
+    Frames per second fed to algorithms with memory (``motion``) while they are in use.
+``~motion_window`` (float, default 5)
+    Seconds after the last motion request during which the stream keeps being fed.
 ``~min_area`` (float, default 20)
     Smallest object, in pixels.
 ``~epsilon`` (float, default 1.0)
@@ -137,7 +147,7 @@ import rospy
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from drvs.algorithms import AlgorithmError
+from drvs.algorithms import AlgorithmError, load_algorithms
 from drvs.client_cache import ClosingCache
 from drvs.guard import RESTART, LoopGuard
 from drvs.retry import retry_delay
@@ -162,7 +172,7 @@ from drvs.srv import (
 from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
-from drvs.vision import draw_detections, locate_objects
+from drvs.vision import draw_detections, locate_labelled
 from drvs.world import load_world
 
 DEFAULT_LEASE = 10.0
@@ -187,6 +197,9 @@ class VisionSystemParams:
     stale_after: float = 3.0
     tf_timeout: float = 0.5
     map_frame: str = 'map'
+    tag_height: float = 0.0
+    motion_rate: float = 5.0
+    motion_window: float = 5.0
     min_area: float = 20.0
     epsilon: float = 1.0
     max_frame_age: float = 0.1
@@ -218,10 +231,12 @@ class VisionSystemParams:
             'frame_timeout',
             'stale_after',
             'tf_timeout',
+            'motion_rate',
+            'motion_window',
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(f'~{name}: must be positive, got {getattr(self, name)}')
-        for name in ('min_area', 'epsilon', 'max_frame_age', 'move_threshold', 'debug_rate'):
+        for name in ('min_area', 'epsilon', 'max_frame_age', 'move_threshold', 'debug_rate', 'tag_height'):
             if not getattr(self, name) >= 0:
                 raise ValueError(f'~{name}: must be zero or positive, got {getattr(self, name)}')
         for name in ('workers', 'queue_size', 'max_callback_clients'):
@@ -249,11 +264,15 @@ class VisionSystemNode:
 
     def __init__(self, params: VisionSystemParams):
         self.params = params
+        tag_heights = {}
         if params.source == 'render':
             world = load_world(params.world)
             self.source = RenderSource(world, world.camera(params.camera), params, self._count)
+            tag_heights = _tag_heights(world)
         else:
             self.source = TopicSource(params, self._count)
+        self.algorithms = load_algorithms(params.min_area, params.epsilon, params.tag_height, tag_heights)
+        self._streaming_until = -1.0  # motion: observe the stream until then (rospy time)
         self.service_name = ''
         self.stats = dict.fromkeys(
             (
@@ -298,6 +317,8 @@ class VisionSystemNode:
         self.guard.spawn(self._registration_loop, 'registration', RESTART)  # after the service is advertised
         if self.params.debug_rate > 0:
             self.guard.spawn(self._debug_loop, 'debug', RESTART)
+        if any(a.streaming for a in self.algorithms.by_name.values()):
+            self.guard.spawn(self._stream_loop, 'stream', RESTART)
         rospy.on_shutdown(self.stop)
         self._publish_stats()
         rospy.loginfo('%s: %s; serving %s', rospy.get_name(), self.source.describe(), self.service_name)
@@ -326,7 +347,10 @@ class VisionSystemNode:
         self._count(requests=1)
         try:
             algorithm, region = request_fields(
-                request.algorithm, msg_to_box(request.region_of_interest), request.callback_service
+                request.algorithm,
+                msg_to_box(request.region_of_interest),
+                request.callback_service,
+                self.algorithms,
             )
         except (AlgorithmError, ValidationError) as error:
             return self._refuse(request, Refusal(INVALID, str(error)))
@@ -334,6 +358,8 @@ class VisionSystemNode:
         if problem:
             return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
         self._count_algorithm(request.algorithm)
+        if algorithm.algorithm.streaming:
+            self._streaming_until = arrival + self.params.motion_window
         job = Job(algorithm, request.algorithm, region, request.callback_service, request.request_id, arrival)
         try:
             self._jobs.put_nowait(job)
@@ -379,7 +405,10 @@ class VisionSystemNode:
             self._count(no_frame=1)
             rospy.logwarn_throttle(5.0, '%s: request %r dropped: %s', rospy.get_name(), job.request_id, error)
             return
-        outlines = locate_objects(frame, job.algorithm, job.region, self.params.min_area, self.params.epsilon)
+        if job.algorithm.algorithm.streaming:
+            job.algorithm.algorithm.observe(frame)  # the model must have seen the frame it judges
+        found = locate_labelled(frame, job.algorithm, job.region)
+        outlines = [outline for outline, _ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
         rospy.logdebug(
@@ -389,16 +418,31 @@ class VisionSystemNode:
             len(outlines),
             ' (cached frame)' if reused else '',
         )
-        if outlines:
-            self._call_back(job, frame, outlines)
+        if found:
+            self._call_back(job, frame, found)
 
-    def _call_back(self, job: Job, frame: Frame, outlines) -> None:
+    def _stream_loop(self) -> None:
+        """While motion requests come (``~motion_window``), feed the algorithms with memory the
+        camera's frames at ``~motion_rate``, so their background model follows the scene."""
+        period = 1.0 / self.params.motion_rate
+        streaming = [a for a in self.algorithms.by_name.values() if a.streaming]
+        while not self._stopping.wait(period):
+            if rospy.get_time() > self._streaming_until:
+                continue
+            try:
+                frame, _ = self.source.frame(rospy.get_time())
+            except FrameUnavailable:
+                continue
+            for algorithm in streaming:
+                algorithm.observe(frame)
+
+    def _call_back(self, job: Job, frame: Frame, found) -> None:
         request = CallbackCoordinatesRequest(
             algorithm=job.algorithm_text,
             request_id=job.request_id,
             vision_system=self.service_name,
             stamp=rospy.Time.from_sec(frame.stamp),
-            objects=[points_to_detected_object(outline) for outline in outlines],
+            objects=[points_to_detected_object(outline, label) for outline, label in found],
         )
         buffer = io.BytesIO()
         request.serialize(buffer)
@@ -409,7 +453,7 @@ class VisionSystemNode:
             self._count(callback_failures=1)
             rospy.logwarn('%s: callback for request %r dropped: %s', rospy.get_name(), job.request_id, error)
             return
-        self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(outlines))
+        self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(found))
 
     # -- registration --------------------------------------------------------------------------
     def _registration_loop(self) -> None:
@@ -448,7 +492,9 @@ class VisionSystemNode:
     def _call_register(self, footprint, what: str) -> float | None:
         """Register ``footprint`` (empty: unregister); None on success, else the server's retry_after."""
         request = RegisterVisionServiceRequest(
-            service_name=self.service_name, field_of_view=points_to_polygon(footprint)
+            service_name=self.service_name,
+            field_of_view=points_to_polygon(footprint),
+            algorithms=self.algorithms.names(),
         )
         try:
             response = self._register_client.call(request)
@@ -533,3 +579,12 @@ def _moved(old, new, threshold: float) -> bool:
     if not new:
         return False
     return float(np.max(np.abs(np.asarray(old) - np.asarray(new)))) > threshold
+
+
+def _tag_heights(world) -> dict[str, float]:
+    """{"FAMILY:ID": height} of the tags the world file puts on top of its robot and station."""
+    return {
+        f'{body.tag.family}:{body.tag.id}': float(body.size[2])
+        for body in (world.robot, world.station)
+        if getattr(body, 'tag', None) is not None
+    }

@@ -1,15 +1,11 @@
 """AprilTags (tag36h11) lying on a floor, rendered with PyBullet's TinyRenderer: views for drvs_calibrate.
 
 Each tag is a flat textured quad at z = 0 on a grey floor plate (a little below it,
-so the two never fight for the depth buffer). The texture is the marker as
-``cv2.aruco.drawMarker`` draws it (8 x 8 cells: the black border and 6 x 6 bits)
-inside a white quiet zone one cell wide; a tag of ``size`` is the black square.
-Seen from above, the printed top of a tag at ``yaw`` 0 points along +y of ``map``
-and its left edge is towards -x; ``yaw`` turns it counter-clockwise.
-
-PyBullet puts a texture on any shape with ``loadTexture`` + ``changeVisualShape``,
-but only a mesh with UV coordinates shows it as drawn: a ``GEOM_BOX`` maps a part
-of the texture to each face. So the quad is an OBJ file written next to the textures.
+so the two never fight for the depth buffer), with the image of
+:func:`drvs.tag_images.tag_image` (the marker in a white quiet zone one cell wide; a
+tag of ``size`` is the black square). Seen from above, the printed top of a tag at
+``yaw`` 0 points along +y of ``map`` and its left edge is towards -x; ``yaw`` turns
+it counter-clockwise. The quad is an OBJ file written next to the textures.
 The view is lit as :meth:`drvs.scene.Scene.render` lights it (ambient only), so
 the array's pixels follow :data:`drvs.scene.TINY_RENDERER_SAMPLE` and
 ``drvs.optics.intrinsics_of(camera, TINY_RENDERER_SAMPLE)`` is its ``K``.
@@ -21,33 +17,16 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pybullet
 
 from drvs.camera import PinholeCamera
 from drvs.scene import render_view
+from drvs.tag_images import quad_side, write_quad, write_tag_image
 
-CELLS = 8
-"""Cells across the black square of a tag36h11 marker as aruco draws it."""
-CELL_PIXELS = 32
+FAMILY = 'tag36h11'
 FLOOR_DEPTH = 0.01
 """The floor plate's top is this far below the tags."""
-
-QUAD_OBJ = """\
-# A 1 x 1 quad at z = 0 facing up, the whole texture on it, upright as seen from above.
-v -0.5 -0.5 0.0
-v 0.5 -0.5 0.0
-v 0.5 0.5 0.0
-v -0.5 0.5 0.0
-vt 0.0 0.0
-vt 1.0 0.0
-vt 1.0 1.0
-vt 0.0 1.0
-vn 0.0 0.0 1.0
-f 1/1/1 2/2/1 3/3/1
-f 1/1/1 3/3/1 4/4/1
-"""
 
 
 @dataclass(frozen=True)
@@ -69,14 +48,6 @@ class FloorTag:
         return np.c_[turned, np.zeros(4)]
 
 
-def tag_image(tag_id: int, cell_pixels: int = CELL_PIXELS) -> np.ndarray:
-    """The marker with a one-cell white quiet zone: (CELLS + 2) * cell_pixels square, grey uint8."""
-    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    marker = cv2.aruco.drawMarker(dictionary, tag_id, CELLS * cell_pixels)
-    border = cell_pixels
-    return cv2.copyMakeBorder(marker, border, border, border, border, cv2.BORDER_CONSTANT, value=255)
-
-
 def render_floor_tags(
     camera: PinholeCamera,
     tags: list[FloorTag],
@@ -86,8 +57,7 @@ def render_floor_tags(
     """The camera's view (RGB, height x width x 3, uint8) of ``tags`` on a floor; files go to ``folder``."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    quad = folder / 'tag_quad.obj'
-    quad.write_text(QUAD_OBJ)
+    quad = write_quad(folder)
     client = pybullet.connect(pybullet.DIRECT)
     try:
         plate = pybullet.createVisualShape(
@@ -98,9 +68,8 @@ def render_floor_tags(
         )
         pybullet.createMultiBody(0, -1, plate, [0, 0, -FLOOR_DEPTH - 0.01], physicsClientId=client)
         for tag in tags:
-            texture = folder / f'tag36h11_{tag.id}.png'
-            cv2.imwrite(str(texture), tag_image(tag.id))
-            side = tag.size * (CELLS + 2) / CELLS
+            texture = write_tag_image(folder, FAMILY, tag.id)
+            side = quad_side(FAMILY, tag.size)
             shape = pybullet.createVisualShape(
                 pybullet.GEOM_MESH, fileName=str(quad), meshScale=[side, side, 1.0], physicsClientId=client
             )

@@ -12,7 +12,9 @@ do not; a test that uses them says so.
 
 Parameters:
 
-- ``~cameras`` (required): YAML mapping of camera name to field of view ``[[x, y], ...]``.
+- ``~cameras`` (required): YAML mapping of camera name to field of view ``[[x, y], ...]``,
+  or to ``{fov: [[x, y], ...], algorithms: [name, ...]}`` to register algorithm names
+  (default ``[]``: the built-ins).
 - ``~output`` (required): JSON lines, one per event, each with ``kind`` and ``camera``:
   ``forward`` (request_id, callback_service, caller), ``callback`` (request_id,
   callback_service, ok, error), ``register`` (status, message, lease, retry_after).
@@ -59,9 +61,10 @@ class Recorder:
 
 
 class Camera:
-    def __init__(self, name, field_of_view, record, callback_timeout, queue_size):
+    def __init__(self, name, field_of_view, record, callback_timeout, queue_size, algorithms=()):
         self.name = name
         self.field_of_view = [(float(x), float(y)) for x, y in field_of_view]
+        self.algorithms = list(algorithms)
         self.polygon = Polygon(self.field_of_view)
         self.record = record
         self.jobs = queue.Queue(maxsize=queue_size)
@@ -137,7 +140,9 @@ def register_loop(cameras, server, record):
             if now < camera.next_registration:
                 continue
             request = RegisterVisionServiceRequest(
-                service_name=camera.service_name, field_of_view=points_to_polygon(camera.field_of_view)
+                service_name=camera.service_name,
+                field_of_view=points_to_polygon(camera.field_of_view),
+                algorithms=camera.algorithms,
             )
             try:
                 answer = client.call(request)
@@ -171,12 +176,13 @@ def main():
     cameras = [
         Camera(
             name,
-            field_of_view,
+            spec['fov'] if isinstance(spec, dict) else spec,
             record,
             float(rospy.get_param('~callback_timeout', 2.0)),
             int(rospy.get_param('~queue_size', 1000)),
+            spec.get('algorithms', []) if isinstance(spec, dict) else [],
         )
-        for name, field_of_view in sorted(layout.items())
+        for name, spec in sorted(layout.items())
     ]
     for camera in cameras:
         camera.start()

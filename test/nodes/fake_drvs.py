@@ -166,7 +166,7 @@ class FakeDrvs:
 
     def answer(self, req):
         try:
-            model = parse_algorithm(req.algorithm)
+            model = parse_algorithm(req.algorithm).params
         except AlgorithmError as error:
             return DetectObjectBoundaryResponse(accepted=False, status=INVALID, message=str(error))
         roi = box(*msg_to_box(req.region_of_interest))

@@ -6,14 +6,16 @@ JSON line per event to ``~output``:
 
 - ``{"kind": "forward", "algorithm", "region_of_interest": [min_x, min_y, max_x, max_y],
   "callback_service", "request_id", "caller"}`` for every request received;
-- ``{"kind": "register", "field_of_view", "service_name", "accepted", "message"}``
-  for every registration answer.
+- ``{"kind": "register", "field_of_view", "algorithms", "service_name", "accepted",
+  "status", "message", "lease", "retry_after"}`` for every registration answer.
 
 Parameters:
 
 - ``~output`` (required): the JSON-lines file.
 - ``~field_of_view`` (YAML list of [x, y], default ``[]``): what to register.
   Changing the parameter while the node runs re-registers (a moved camera).
+- ``~algorithms`` (YAML list of names, default ``[]`` = the built-ins): the
+  algorithm names to register; changing it re-registers too.
 - ``~register`` (bool, default true): register with ``~server``.
 - ``~server`` (default ``/drvs/register_vision_service``).
 - ``~service_name`` (default this node's ``detect_object_boundary``): the name
@@ -32,6 +34,14 @@ import yaml
 
 from drvs.ros.conversions import points_to_polygon
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryResponse, RegisterVisionService
+
+
+def list_param(name):
+    """A list parameter, given as a list or as YAML text (``_param:=...`` on the command line)."""
+    value = rospy.get_param(name, [])
+    if isinstance(value, str):
+        value = yaml.safe_load(value)
+    return value or []
 
 
 def main():
@@ -72,13 +82,12 @@ def main():
     register = rospy.ServiceProxy(server, RegisterVisionService)
     last, last_time = None, 0.0
     while not rospy.is_shutdown():
-        fov = rospy.get_param('~field_of_view', [])
-        if isinstance(fov, str):
-            fov = yaml.safe_load(fov) or []
+        fov = list_param('~field_of_view')
+        algorithms = list_param('~algorithms')
         now = time.monotonic()
-        if fov != last or (renew > 0 and now - last_time >= renew):
+        if (fov, algorithms) != last or (renew > 0 and now - last_time >= renew):
             try:
-                answer = register(service_name, points_to_polygon(fov))
+                answer = register(service_name, points_to_polygon(fov), algorithms)
             except (rospy.ServiceException, rospy.ROSException) as error:
                 rospy.logwarn('registration failed: %s', error)
                 register = rospy.ServiceProxy(server, RegisterVisionService)
@@ -87,6 +96,7 @@ def main():
                     {
                         'kind': 'register',
                         'field_of_view': fov,
+                        'algorithms': algorithms,
                         'service_name': service_name,
                         'accepted': answer.accepted,
                         'status': answer.status,
@@ -95,7 +105,7 @@ def main():
                         'retry_after': answer.retry_after,
                     }
                 )
-                last, last_time = fov, now
+                last, last_time = (fov, algorithms), now
         time.sleep(min(renew, 0.2) if renew > 0 else 0.2)
 
 

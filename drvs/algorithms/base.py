@@ -1,0 +1,134 @@
+"""What an algorithm is: a name, a parser for its parameters, and a detector that finds objects in a frame.
+
+An algorithm string is ``NAME`` or ``NAME:PARAMS``. The server parses it to refuse
+bad requests, the vision systems to run it and the robots to build it (the paper's
+Discussion: these definitions are part of the API). Every algorithm — the
+built-ins and third-party plugins alike — is an object with:
+
+``name``
+    The NAME it answers to: a letter, then letters, digits or ``_``.
+``syntax``
+    One line for error messages and documentation, e.g. ``apriltag:FAMILY[:ID,ID,...]``.
+``parse(params) -> validated params``
+    ``params`` is the text after the first ``:`` ('' when there is none). Raises
+    :class:`AlgorithmError` whose message names the problem.
+``detect(frame, params) -> list of PixelObject``
+    The objects in a :class:`drvs.scene.Frame` (``rgb``, ``depth`` or None,
+    ``camera``, ``stamp``): each an outline in pixels, optionally a ``label`` and a
+    ``height`` (the object lies flat at that height: its outline is met with that
+    plane rather than the floor).
+``observe(frame)`` (optional)
+    For algorithms with memory (``motion``): called with every frame of the
+    camera's stream while the algorithm is in use, before any ``detect``. ``streaming``
+    is True for them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_LENGTH = 512
+NAME_PATTERN = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
+
+
+class AlgorithmError(ValueError):
+    """An algorithm string that cannot be run; the message names the part and the problem."""
+
+
+@dataclass(frozen=True)
+class PixelObject:
+    """One object found in an image: its outline in pixel coordinates and its area in pixels.
+
+    ``outline`` is an (N, 2) float array of (u, v) = (column, row) positions on the
+    boundary of the object's pixels (pixel edges, not centres), or any other points
+    (a tag's corners) in the same coordinates; orientation unspecified unless the
+    algorithm documents it. ``label`` says what it is when the algorithm knows
+    (``tag36h11:3``). ``height``: the object lies flat at this height above the
+    floor (metres), so its outline is met with that plane; None: lift it with depth,
+    or meet it with the floor.
+    """
+
+    outline: np.ndarray
+    area: float
+    label: str = ''
+    height: float | None = None
+    keep_order: bool = False
+    """True: the outline's vertex order means something (a tag's corner 0 first); keep it."""
+
+
+class Algorithm:
+    """Base class of the algorithms (plugins need not inherit from it; they need the same members)."""
+
+    name = ''
+    syntax = ''
+    streaming = False
+
+    def parse(self, params: str):
+        raise NotImplementedError
+
+    def detect(self, frame, params) -> list[PixelObject]:
+        raise NotImplementedError
+
+    def observe(self, frame) -> None:
+        """Take one frame of the camera's stream (algorithms with memory)."""
+
+
+def split_algorithm(text) -> tuple[str, str]:
+    """``NAME[:PARAMS]`` -> (NAME, PARAMS) after checking the syntax only.
+
+    :raises AlgorithmError: empty, too long, or not ``NAME[:PARAMS]``.
+    """
+    if not isinstance(text, str) or not text:
+        raise AlgorithmError('algorithm: empty; expected NAME:PARAMS, e.g. colour:0,0,150,80,80,255')
+    if len(text) > MAX_LENGTH:
+        raise AlgorithmError(f'algorithm: {len(text)} characters, longer than the limit of {MAX_LENGTH}')
+    name, _, params = text.partition(':')
+    if not NAME_PATTERN.fullmatch(name):
+        raise AlgorithmError(
+            f'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
+            f'e.g. colour:0,0,150,80,80,255, got {text!r}'
+        )
+    return name, params
+
+
+def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[PixelObject]:
+    """Outer outlines of the connected regions of a binary mask, on the pixels' edges.
+
+    Pixel (row v, column u) covers the square [u, u+1] x [v, v+1]. OpenCV traces
+    contours through pixel centres (u + 0.5, v + 0.5); the traced polygon is
+    grown by half a pixel with mitred corners so a region's outline runs along
+    its outer pixel edges and its area matches its pixel count. Pixels that touch
+    only at a corner, or through a one-pixel-wide neck, make separate objects.
+    """
+    import cv2
+    from shapely.geometry import Polygon
+
+    if not mask.any():
+        return []
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    found = []
+    for contour in contours:
+        centres = contour.reshape(-1, 2).astype(np.float64) + 0.5
+        if len(centres) < 3:
+            shape = Polygon(
+                [
+                    (u + du, v + dv)
+                    for u, v in centres
+                    for du, dv in ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5))
+                ]
+            ).convex_hull
+        else:
+            shape = Polygon(centres).buffer(0).buffer(0.5, join_style=2, mitre_limit=2.0)
+        # Parts joined only diagonally or by a one-pixel neck come apart here: each is an object.
+        parts = shape.geoms if shape.geom_type == 'MultiPolygon' else [shape]
+        for part in parts:
+            if part.is_empty or part.area < min_area:
+                continue
+            simple = part.simplify(epsilon, preserve_topology=True)
+            ring = np.asarray(simple.exterior.coords)[:-1]
+            if len(ring) >= 3:
+                found.append(PixelObject(ring, float(part.area)))
+    return found
