@@ -12,6 +12,7 @@ from drvs.rate_limit import RateLimiter
 from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
 from drvs.ros.robot import RobotParams, request_schedule
 from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED
+from drvs.status import name as status_name
 from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 3.0, 3.0)
@@ -197,29 +198,24 @@ def test_jitter_only_lengthens_the_wait_and_the_servers_hint_beats_the_cap(clock
     assert schedule.next_request().role == 'self'
 
 
-def test_invalid_gives_up_for_good_with_the_servers_message(schedule, clock):
+@pytest.mark.parametrize(
+    'code, message',
+    [
+        (INVALID, 'region_of_interest: x_max 9.0 is beyond the floor'),
+        (UNSUPPORTED, "algorithm: no registered vision system runs 'apriltag'; available: colour"),
+    ],
+    ids=['INVALID', 'UNSUPPORTED'],
+)
+def test_a_final_refusal_gives_up_for_good_with_the_servers_message(schedule, clock, code, message):
     schedule.post({'self': FLOOR, 'station': FLOOR})
     schedule.next_request()
-    message = 'region_of_interest: x_max 9.0 is beyond the floor'
-    assert schedule.on_response('self', INVALID, message=message) == Outcome(GIVE_UP)
+    assert schedule.on_response('self', code, message=message) == Outcome(GIVE_UP)
     assert schedule.invalid == ('self', message)
-    assert schedule.refused == {'INVALID': 1}
+    assert schedule.refused == {status_name(code): 1}
     clock.now += 1.0
     schedule.post({'self': FLOOR, 'station': FLOOR})
     assert schedule.next_request() is None
     assert schedule.wait_time() is None
-
-
-def test_unsupported_gives_up_for_good_like_invalid(schedule, clock):
-    schedule.post({'self': FLOOR, 'station': FLOOR})
-    schedule.next_request()
-    message = "algorithm: no registered vision system runs 'apriltag'; available: colour"
-    assert schedule.on_response('self', UNSUPPORTED, message=message) == Outcome(GIVE_UP)
-    assert schedule.invalid == ('self', message)
-    assert schedule.refused == {'UNSUPPORTED': 1}
-    clock.now += 1.0
-    schedule.post({'self': FLOOR, 'station': FLOOR})
-    assert schedule.next_request() is None
 
 
 def test_an_unknown_status_is_retried_and_warned_about_once(schedule, clock, caplog):
