@@ -125,16 +125,16 @@ for camera in $cameras; do
 done
 # The case study starts once DRVS is up: every camera registered with the server.
 "$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
-import json, sys, threading
+import sys, threading
 import rospy
-from std_msgs.msg import String
+from drvs.msg import Registry
 wanted = {f'/{name}/detect_object_boundary' for name in sys.argv[1].split()}
 done = threading.Event()
 def on_registry(msg):
-    if wanted <= {entry['service_name'] for entry in json.loads(msg.data)['vision_systems']}:
+    if wanted <= {entry.service_name for entry in msg.vision_systems}:
         done.set()
 rospy.init_node('run_scenario_wait', anonymous=True, disable_signals=True)
-rospy.Subscriber('/drvs/registry', String, on_registry)
+rospy.Subscriber('/drvs/registry', Registry, on_registry)
 sys.exit(0 if done.wait(60.0) else 1)
 EOF
 start recorder "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _world:="$world" _out:="$out"

@@ -21,6 +21,7 @@ APT_PACKAGES=(
   python3-matplotlib python3-venv python3-pip python3-psutil
   python3-cachetools python3-hypothesis
   python3-cv-bridge python3-image-geometry python3-tf2-ros python3-message-filters tf2-tools
+  python3-diagnostic-msgs ros-diagnostic-msgs python3-visualization-msgs ros-visualization-msgs
 )
 # The test tools and the PyPI wheels, pinned to what the project was checked with.
 PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)

@@ -84,7 +84,8 @@ def start_recorder(ros, output, name='robot', service=CALLBACK):
 
 
 def record_topic(ros, topic, output):
-    """Record ``topic`` (std_msgs/String JSON) with arrival times; read it with :func:`read_json_lines`."""
+    """Record ``topic`` (any type, as ``rostopic echo`` prints it) with arrival times; read it with
+    :func:`read_json_lines`."""
     name = 'rec_' + topic.strip('/').replace('/', '_')
     return ros.start_node(TOPIC_RECORDER, name=name, params={'topic': topic, 'output': output})
 

@@ -16,7 +16,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 from shapely.geometry import Polygon
 
 from drvs.algorithms import AlgorithmError
@@ -24,6 +23,7 @@ from drvs.scene import Frame
 from drvs.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
+from drvs.testing.harness import parse_echo
 from drvs.world import load_world
 
 REPO = Path(__file__).resolve().parents[1]
@@ -174,7 +174,7 @@ def registry_entry(ros, service: str) -> dict | None:
     result = ros.run('rostopic echo -n 1 /drvs/registry', timeout=30)
     if result.returncode != 0:
         return None
-    registry = json.loads(yaml.safe_load(result.stdout.split('\n---')[0])['data'])
+    registry = parse_echo(result.stdout.split('\n---')[0])
     return next((e for e in registry['vision_systems'] if e['service_name'] == service), None)
 
 

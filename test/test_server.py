@@ -1,6 +1,5 @@
 """The DRVS server node with a private roscore, fake vision systems and a callback recorder."""
 
-import json
 import math
 
 import pytest
@@ -11,7 +10,7 @@ from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
 from drvs.status import INVALID, UNSUPPORTED
-from drvs.testing import read_json_lines, wait_for
+from drvs.testing import echo, points, read_json_lines, wait_for
 
 SERVER = 'nodes/drvs_server'
 FAKE = 'test/nodes/fake_vision_system.py'
@@ -71,9 +70,11 @@ class Graph:
         return self.register_client.call(request)
 
     def registry_topic(self):
-        result = self.ros.run('rostopic echo -n 1 -p /drvs/registry', timeout=30)
-        assert result.returncode == 0, result.stderr
-        return json.loads(result.stdout.splitlines()[1].split(',', 1)[1])
+        """The latched /drvs/registry (drvs/Registry), each field_of_view as [[x, y], ...]."""
+        registry = echo(self.ros, '/drvs/registry')
+        for entry in registry['vision_systems']:
+            entry['field_of_view'] = points(entry['field_of_view'])
+        return registry
 
 
 @pytest.fixture

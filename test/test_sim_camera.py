@@ -24,6 +24,7 @@ from std_msgs.msg import Header
 
 from drvs.camera import PinholeCamera
 from drvs.optics import intrinsics_of, optical_pose_of
+from drvs.ros.messages import body_poses_from_msg
 from drvs.ros.sim_camera import (
     SimCameraNode,
     SimCameraParams,
@@ -169,7 +170,7 @@ def test_frames_are_stamped_with_the_poses_they_show(ros):
 
     published = [topic for topic, nodes in ros.master.system_state()[0] if '/sim_camera' in nodes]
     assert '/vs2/image_raw' in published and '/vs2/depth/image_raw' not in published  # ~depth false
-    poses = {json.loads(m.data)['stamp']: json.loads(m.data)['poses'] for m, _ in found['/world_sim/poses']}
+    poses = dict(body_poses_from_msg(m) for m, _ in found['/world_sim/poses'])
     vs2 = PinholeCamera.from_config(world.camera('vs2'))
     rover = PinholeCamera.from_config(world.camera('rover'))
     with Scene(world) as scene:

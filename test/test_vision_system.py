@@ -3,13 +3,12 @@
 import json
 import threading
 
-import yaml
 from shapely.geometry import Polygon
 
 from drvs.ros.service_client import ServiceClient
 from drvs.simulation import loop_of, position_on_loop
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
-from drvs.testing import read_json_lines, wait_for
+from drvs.testing import echo, read_json_lines, wait_for
 from drvs.testing.detect import detect as request
 from drvs.world import box_footprint, load_world
 
@@ -17,11 +16,17 @@ WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
 
 
-def echo_json(ros, topic):
-    """One message of a std_msgs/String JSON topic, decoded."""
-    result = ros.run(f'rostopic echo -n 1 {topic}', timeout=30)
-    assert result.returncode == 0, result.stderr
-    return json.loads(yaml.safe_load(result.stdout.split('\n---')[0])['data'])
+def ground_truth_of(ros):
+    """One message of world_sim's ground truth (std_msgs/String, JSON), decoded."""
+    return json.loads(echo(ros, '/world_sim/ground_truth')['data'])
+
+
+def stats_of(ros, name):
+    """One message of a vision system's ``~stats`` (drvs/VisionSystemStats), with
+    ``requests_by_algorithm`` ({algorithm: count}) from its two parallel arrays."""
+    stats = echo(ros, f'/{name}/stats')
+    stats['requests_by_algorithm'] = dict(zip(stats['algorithms'], stats['algorithm_requests'], strict=True))
+    return stats
 
 
 def start_recorder(ros, **params):
@@ -85,7 +90,7 @@ def test_the_whole_path_from_world_to_robot(graph):
 
     # The walker, where world_sim had it when the frame was captured: all of it from vs2 right
     # above it, and from vs1 (if it sees any of it at its image's edge) no more than there is.
-    ground_truth = echo_json(ros, '/world_sim/ground_truth')
+    ground_truth = ground_truth_of(ros)
     request('/drvs/detect_object_boundary', world.colour_models['human'], (0, 0, 4, 3), 'walker')
     walker = world.objects[1]
     loop = loop_of(walker.position, walker.waypoints)
@@ -104,7 +109,7 @@ def test_the_whole_path_from_world_to_robot(graph):
     clients = [ServiceClient('/vs1/detect_object_boundary', DetectObjectBoundary, 10.0) for _ in range(10)]
     for client in clients:
         assert not client.call(DetectObjectBoundaryRequest(algorithm='none')).accepted
-    before = echo_json(ros, '/vs1/stats')
+    before = stats_of(ros, 'vs1')
     barrier = threading.Barrier(10)
     message = DetectObjectBoundaryRequest(
         algorithm=world.colour_models['obstacle'], callback_service=CALLBACK, request_id='burst'
@@ -124,7 +129,7 @@ def test_the_whole_path_from_world_to_robot(graph):
         client.close()
     callbacks_for(output, 'burst', 10, ros)
     after = wait_for(
-        lambda: (s := echo_json(ros, '/vs1/stats'))['callbacks'] >= before['callbacks'] + 10 and s,
+        lambda: (s := stats_of(ros, 'vs1'))['callbacks'] >= before['callbacks'] + 10 and s,
         30,
         'stats',
     )
@@ -142,7 +147,7 @@ def test_the_whole_path_from_world_to_robot(graph):
         ['rostopic', 'pub', '-r', '10', '/robot/cmd_vel', 'geometry_msgs/Twist', '{linear: {x: 0.3}}'],
     )
     wait_for(
-        lambda: echo_json(ros, '/world_sim/ground_truth')['robot']['position'][0] > start_x + 0.1,
+        lambda: ground_truth_of(ros)['robot']['position'][0] > start_x + 0.1,
         30,
         'the robot to move',
         on_timeout=world_sim.describe,
@@ -185,12 +190,12 @@ def test_a_vision_system_waits_for_the_server_survives_a_hung_robot_and_unregist
     callbacks_for(output, 'slow', 1, ros)
     reply = request('/vs1/detect_object_boundary', world.colour_models['obstacle'], (0, 0, 4, 3), 'after')
     assert reply.accepted and vs1.running()
-    stats = wait_for(lambda: (s := echo_json(ros, '/vs1/stats'))['callback_failures'] >= 2 and s, 30, 'stats')
+    stats = wait_for(lambda: (s := stats_of(ros, 'vs1'))['callback_failures'] >= 2 and s, 30, 'stats')
     # (requests also counts the server's forwards of the probes that waited for the registration)
     assert (stats['refused'], stats['callbacks'], stats['callback_failures']) == (1, 0, 2)
 
     assert vs1.interrupt() == 0
-    assert echo_json(ros, '/drvs/registry') == {'vision_systems': []}  # unregistered; the lease is 10 s
+    assert echo(ros, '/drvs/registry')['vision_systems'] == []  # unregistered; the lease is 10 s
 
 
 def test_a_camera_on_a_moving_mount_registers_where_it_looks_and_routing_follows(graph):

@@ -19,17 +19,17 @@ is kept (:class:`drvs.frame_feed.FrameFeed`); it is decoded when a request uses 
 
 from __future__ import annotations
 
-import json
 import threading
 
 import numpy as np
 import rospy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_msgs.msg import String
 
 from drvs.camera import PinholeCamera
 from drvs.frame_feed import FrameFeed, FrameTimeout
+from drvs.msg import BodyPoses
 from drvs.optics import CameraModel
+from drvs.ros.messages import body_poses_from_msg
 from drvs.scene import Frame, Scene
 from drvs.simulation import mount_position
 from drvs.transforms import matrix_from_quaternion
@@ -72,7 +72,7 @@ class RenderSource:
     def start(self) -> None:
         self.scene = Scene(self.world)
         self._start_time = rospy.get_time()
-        rospy.Subscriber(self.params.poses_topic, String, self._on_poses, queue_size=1)
+        rospy.Subscriber(self.params.poses_topic, BodyPoses, self._on_poses, queue_size=1)
 
     def describe(self) -> str:
         camera = self.base_camera
@@ -87,10 +87,10 @@ class RenderSource:
             return self.base_camera
         return self.base_camera.moved_to(*mount_position(self.config, stamp - self._start_time))
 
-    def _on_poses(self, message: String) -> None:
+    def _on_poses(self, message: BodyPoses) -> None:
         try:
-            poses = json.loads(message.data)['poses']
-        except (ValueError, KeyError, TypeError) as error:
+            _, poses = body_poses_from_msg(message)
+        except ValueError as error:
             rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
             return
         with self._poses_lock:

@@ -16,8 +16,9 @@ Parameters (private):
 ``~cpu_period`` (float, default 1)
     Seconds between CPU samples of every node.
 
-Topics read: ``/world_sim/ground_truth``, ``/robot/status``, ``/robot/path``,
-``/robot/map``, ``/drvs/registry``, ``/<camera>/stats`` for every camera of the world.
+Topics read: ``/world_sim/ground_truth`` (JSON), ``/robot/status`` (drvs/RobotStatus),
+``/robot/path``, ``/robot/map``, ``/drvs/registry`` (drvs/Registry), ``/<camera>/stats``
+(drvs/VisionSystemStats) for every camera of the world.
 """
 
 from __future__ import annotations
@@ -37,7 +38,9 @@ from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import String
 
 from drvs.guard import RESTART, LoopGuard
+from drvs.msg import Registry, RobotStatus, VisionSystemStats
 from drvs.report import RunRecord, draw, hindsight_shortest_length, summary, trace
+from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
 from drvs.world import load_world
 
 CLOCK_TICKS = os.sysconf('SC_CLK_TCK')
@@ -77,13 +80,17 @@ class RecorderNode:
     def start(self) -> None:
         self.out.mkdir(parents=True, exist_ok=True)
         rospy.Subscriber('/world_sim/ground_truth', String, self._on_truth, queue_size=5)
-        rospy.Subscriber('/robot/status', String, self._on_status, queue_size=5)
+        rospy.Subscriber('/robot/status', RobotStatus, self._on_status, queue_size=5)
         rospy.Subscriber('/robot/path', PathMsg, self._on_path, queue_size=5)
         rospy.Subscriber('/robot/map', OccupancyGrid, self._on_map, queue_size=1)
-        rospy.Subscriber('/drvs/registry', String, self._on_registry, queue_size=5)
+        rospy.Subscriber('/drvs/registry', Registry, self._on_registry, queue_size=5)
         for camera in self.world.vision_systems:
             rospy.Subscriber(
-                f'/{camera.name}/stats', String, self._on_stats, callback_args=camera.name, queue_size=5
+                f'/{camera.name}/stats',
+                VisionSystemStats,
+                self._on_stats,
+                callback_args=camera.name,
+                queue_size=5,
             )
         rospy.on_shutdown(self.finish)
         self.guard.spawn(self._sample_loop, 'cpu-sampler', RESTART)
@@ -105,8 +112,8 @@ class RecorderNode:
                     if not trace or math.dist(trace[-1], pose[:2]) >= TRACE_STEP:
                         trace.append((pose[0], pose[1]))
 
-    def _on_status(self, msg: String) -> None:
-        status = json.loads(msg.data)
+    def _on_status(self, msg: RobotStatus) -> None:
+        status = robot_status_to_dict(msg)
         now = time.monotonic()
         with self._lock:
             if self._first_status is None:
@@ -143,14 +150,14 @@ class RecorderNode:
             self.record.grid_origin = (msg.info.origin.position.x, msg.info.origin.position.y)
             self.record.grid_resolution = msg.info.resolution
 
-    def _on_registry(self, msg: String) -> None:
-        entries = json.loads(msg.data).get('vision_systems', [])
+    def _on_registry(self, msg: Registry) -> None:
+        entries = registry_to_dict(msg)['vision_systems']
         with self._lock:
             for entry in entries:
                 self.record.fields_of_view[entry['service_name']] = [tuple(p) for p in entry['field_of_view']]
 
-    def _on_stats(self, msg: String, camera: str) -> None:
-        stats = json.loads(msg.data)
+    def _on_stats(self, msg: VisionSystemStats, camera: str) -> None:
+        stats = stats_to_dict(msg)
         with self._lock:
             self.record.vision_systems[camera] = {
                 'requests': stats.get('requests', 0),

@@ -104,19 +104,20 @@ Services and topics (``~`` = ``/robot`` when run as ``__name:=robot``):
 ``~cmd_vel`` (geometry_msgs/Twist): ``linear.x``, ``linear.y`` velocity in ``map``.
 ``~path`` (nav_msgs/Path, latched): the current plan.
 ``~map`` (nav_msgs/OccupancyGrid, latched): 0 free, 99 inflated margin, 100 obstacle.
-``~status`` (std_msgs/String, latched, JSON): state (localising, moving, blocked,
-arriving, arrived, failed), reason, replans, distance_to_goal, position, goal,
-path_length, requests (sent), failed_requests (no response), refused (refusals
-per status name, e.g. ``{"BUSY": 3}``), callbacks, refused_callbacks,
-superseded, obstacles, vision_systems (per role, how many its last accepted
-request reached), stamp (ROS time of the tick); when the robot's ``self`` model is
-an ``apriltag``, also tag_pose ([x, y, heading] of its newest fix: the heading
-seen by the cameras, not predicted) and tag_stamp (when those frames were taken).
+``~status`` (drvs/RobotStatus, latched, every tick): state (a constant and its name:
+localising, moving, blocked, arriving, arrived, failed), reason, replans,
+distance_to_goal, position (and the heading the cameras saw, with an ``apriltag``
+self model), goal, path_length, requests (sent), failed_requests (no response),
+refused (refusals per status name, e.g. BUSY: 3), callbacks, refused_callbacks,
+superseded, obstacles, vision_systems (per role, how many its last accepted request
+reached), header.stamp (ROS time of the tick); when the robot's ``self`` model is an
+``apriltag``, also tag_pose (x, y, heading of its newest fix: the heading seen by the
+cameras, not predicted) and tag_stamp (when those frames were taken).
 """
 
 from __future__ import annotations
 
-import json
+import collections
 import math
 import threading
 import time
@@ -125,11 +126,12 @@ from dataclasses import dataclass
 import rospy
 from geometry_msgs.msg import Pose, PoseStamped, Twist, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
-from shapely.geometry import Polygon
-from std_msgs.msg import String
+from shapely.geometry import Point, Polygon
+from shapely.ops import unary_union
 
 from drvs.controller import FAILED, FINAL_STATES, Controller, ControllerSettings
 from drvs.guard import RESTART, SHUTDOWN, LoopGuard
+from drvs.msg import RobotStatus
 from drvs.occupancy import CostGrid, GridSpec, ObstacleMemory
 from drvs.perception import (
     LOCALISATION_ROLES,
@@ -143,6 +145,7 @@ from drvs.perception import (
 )
 from drvs.request_schedule import ACCEPT, RETRY, Request, RequestSchedule
 from drvs.ros.conversions import box_to_msg, polygon_to_points
+from drvs.ros.messages import robot_status_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
@@ -159,6 +162,8 @@ MAX_STAMP_AGE = 2.0
 IDLE_WAIT = 0.5
 """Seconds the idle requester sleeps at most before it checks for a stop (a new round wakes it at once)."""
 BODY_MARGIN = 0.08
+OWN_TRAIL = 4.0
+"""Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
 """Metres around the robot's body (placed by its tag) within which moving regions are the robot itself."""
 
 
@@ -241,6 +246,7 @@ class BlindRobot:
             params.robot_radius if params.robot_radius is not None else math.hypot(size[0], size[1]) / 2
         )
         self.perception = Perception(world.colour_models)
+        self._trail: collections.deque = collections.deque()  # (time, position) of recent fixes
         self.memory = ObstacleMemory(params.obstacle_ttl)
         self.grid = CostGrid(GridSpec(self.floor_size, params.resolution), self.robot_radius)
         self.settings = ControllerSettings(
@@ -281,7 +287,7 @@ class BlindRobot:
         self.cmd_vel = rospy.Publisher('~cmd_vel', Twist, queue_size=1)
         self.path_pub = rospy.Publisher('~path', Path, queue_size=1, latch=True)
         self.map_pub = rospy.Publisher('~map', OccupancyGrid, queue_size=1, latch=True)
-        self.status_pub = rospy.Publisher('~status', String, queue_size=1, latch=True)
+        self.status_pub = rospy.Publisher('~status', RobotStatus, queue_size=1, latch=True)
         self.callback_service = rospy.resolve_name('~callback_coordinates')
         self._service = rospy.Service('~callback_coordinates', CallbackCoordinates, self._on_callback)
         self._started_at = rospy.get_time()
@@ -471,6 +477,18 @@ class BlindRobot:
         self._post_round(fix, station)
         self._publish(now)
 
+    def _own_trail(self, now: float, fix) -> Polygon:
+        """Where the robot stood in the last ``OWN_TRAIL`` seconds: a background model that took the
+        robot in while it stood still reports the floor it uncovers as "moving" for a while (a
+        ghost of itself), which must not block it."""
+        trail = self._trail
+        if fix is not None and (not trail or trail[-1][1] != fix.position):
+            trail.append((now, fix.position))
+        while trail and now - trail[0][0] > OWN_TRAIL:
+            trail.popleft()
+        radius = self.robot_radius + BODY_MARGIN
+        return unary_union([Point(position).buffer(radius) for _, position in trail]) if trail else Polygon()
+
     def _update_map(self, now: float, sources, fix, station) -> None:
         objects = []
         for role in OBSTACLE_ROLES:
@@ -482,6 +500,7 @@ class BlindRobot:
             # (motion finds the robot moving), with a margin for the time between the frames.
             body = Polygon(box_footprint(fix.position, self.robot_size, fix.heading)).buffer(BODY_MARGIN)
             bodies.append(body)
+        bodies.append(self._own_trail(now, fix))
         objects = exclude_bodies(objects, bodies)
         self._obstacles = len(objects)
         changes = self.grid.apply(objects)
@@ -511,7 +530,7 @@ class BlindRobot:
             if fix is not None and fix.heading is not None:  # asked with apriltag: seen, not predicted
                 status.update(tag_pose=[fix.position[0], fix.position[1], fix.heading], tag_stamp=fix.stamp)
         status.update(obstacles=self._obstacles, stamp=now)
-        self.status_pub.publish(String(json.dumps(status)))
+        self.status_pub.publish(robot_status_to_msg(status))
         if controller.path is not self._last_path:
             self._last_path = controller.path
             self.path_pub.publish(self._path_msg(controller.path))

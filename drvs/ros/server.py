@@ -42,12 +42,11 @@ Both services limit each caller (its caller id) to ``~max_requests_per_s``
 with bursts of ``~burst`` (a token bucket, :mod:`drvs.rate_limit`); the excess
 is refused with ``RATE_LIMITED``.
 
-Topic: ``~registry`` (std_msgs/String, latched): JSON
-``{"vision_systems": [{"service_name": ..., "provider": ..., "field_of_view": [[x, y], ...],
-"algorithms": [name, ...]}, ...]}`` sorted by service name (algorithms sorted too),
-republished after every change (registration, move, change of algorithms,
-unregistration, expiry, removal; not renewals), at most once per
-``~registry_period``.
+Topic: ``~registry`` (drvs/Registry, latched): every entry's ``service_name``,
+``provider``, ``field_of_view``, ``algorithms`` and ``lease_expiry`` (ROS time), sorted
+by service name (algorithms sorted too), republished after every change (registration,
+move, change of algorithms, unregistration, expiry, removal; not renewals), at most
+once per ``~registry_period``.
 
 Parameters:
 
@@ -84,7 +83,6 @@ request; debug per forward.
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 import traceback
@@ -93,11 +91,11 @@ from dataclasses import dataclass
 import cachetools
 import rosgraph.names
 import rospy
-from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
 from drvs.dispatch import Busy, Dispatcher
 from drvs.guard import RESTART, LoopGuard
+from drvs.msg import Registry as RegistryMsg
 from drvs.rate_limit import RateLimiter
 from drvs.registry import (
     CHANGED,
@@ -110,6 +108,7 @@ from drvs.registry import (
     algorithm_names,
 )
 from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
+from drvs.ros.messages import registry_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import (
     MasterUnreachable,
@@ -228,7 +227,7 @@ class DrvsServer:
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
         self.algorithms = default_algorithms()
-        self._registry_publisher = rospy.Publisher('~registry', String, queue_size=1, latch=True)
+        self._registry_publisher = rospy.Publisher('~registry', RegistryMsg, queue_size=1, latch=True)
         self.dispatcher.start()
         self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
         self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
@@ -592,20 +591,9 @@ class DrvsServer:
                 self._dirty = False
             if stop.is_set():
                 return
-            self._registry_publisher.publish(String(data=self.registry_json()))
+            self._registry_publisher.publish(self.registry_msg())
             stop.wait(self.settings.registry_period)
 
-    def registry_json(self) -> str:
-        return json.dumps(
-            {
-                'vision_systems': [
-                    {
-                        'service_name': entry.service_name,
-                        'provider': entry.provider,
-                        'field_of_view': [list(point) for point in entry.field_of_view],
-                        'algorithms': sorted(entry.algorithms),
-                    }
-                    for entry in self.registry.entries()
-                ]
-            }
-        )
+    def registry_msg(self) -> RegistryMsg:
+        """The registry now, with each lease's expiry in ROS time."""
+        return registry_to_msg(self.registry.entries(), rospy.get_time(), self.registry.clock())

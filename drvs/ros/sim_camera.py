@@ -49,7 +49,7 @@ Topics, for each camera NAME (relative names: ``/NAME/...`` in the root namespac
 ``NAME/image_raw/compressed`` (sensor_msgs/CompressedImage)
     The view as image_transport's ``compressed`` plugin writes it (format
     ``rgb8; jpeg compressed bgr8`` or ``rgb8; png compressed bgr8``).
-``~poses_topic`` (std_msgs/String JSON, subscribed)
+``~poses_topic`` (drvs/BodyPoses, subscribed)
 
 tf frames:
 
@@ -63,8 +63,6 @@ tf frames:
 
 from __future__ import annotations
 
-import json
-import math
 import sys
 import threading
 import time
@@ -76,12 +74,14 @@ import rospy
 import tf2_ros
 from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_msgs.msg import Header, String
+from std_msgs.msg import Header
 
 from drvs.camera import PinholeCamera
 from drvs.guard import RESTART, LoopGuard
 from drvs.lens import Lens
+from drvs.msg import BodyPoses
 from drvs.optics import intrinsics_of, optical_pose_of
+from drvs.ros.messages import body_poses_from_msg
 from drvs.ros.params import read_params
 from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
 from drvs.simulation import mount_position
@@ -288,7 +288,7 @@ class SimCameraNode:
         fixed = [self._transform(feed, feed.camera, now) for feed in self.feeds if not feed.config.moving]
         if fixed:
             self.static_broadcaster.sendTransform(fixed)
-        rospy.Subscriber(self.params.poses_topic, String, self._on_poses, queue_size=1)
+        rospy.Subscriber(self.params.poses_topic, BodyPoses, self._on_poses, queue_size=1)
         self.guard.spawn(self._render_loop, 'render', RESTART)
         rospy.on_shutdown(self.stop)
         for feed in self.feeds:
@@ -325,13 +325,10 @@ class SimCameraNode:
             feed.unadvertise()
 
     # -- poses ---------------------------------------------------------------------------------
-    def _on_poses(self, message: String) -> None:
+    def _on_poses(self, message: BodyPoses) -> None:
         try:
-            data = json.loads(message.data)
-            poses, stamp = data['poses'], float(data['stamp'])
-            if not isinstance(poses, dict) or not math.isfinite(stamp):
-                raise ValueError(f'poses {type(poses).__name__}, stamp {stamp}')
-        except (ValueError, KeyError, TypeError) as error:
+            stamp, poses = body_poses_from_msg(message)
+        except ValueError as error:
             rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
             return
         with self._poses_lock:

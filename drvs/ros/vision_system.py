@@ -121,13 +121,13 @@ Topics and services:
 
 ``~detect_object_boundary`` (drvs/DetectObjectBoundary)
     e.g. ``/vs1/detect_object_boundary``.
-``~stats`` (std_msgs/String JSON, latched)
+``~stats`` (drvs/VisionSystemStats, latched)
     ``requests``, ``refused``, ``callbacks``, ``callback_failures``, ``callback_bytes``
     (serialized size of the callbacks sent), ``renders`` (frames rendered or decoded),
     ``no_frame`` (accepted requests dropped because no frame came), ``cache_hits``,
-    ``registrations``, ``objects``, and ``requests_by_algorithm`` (accepted requests per
-    algorithm string, at most ``MAX_ALGORITHMS_COUNTED`` distinct ones, the rest under
-    ``other``); republished when they change.
+    ``registrations``, ``objects``, and accepted requests per algorithm string
+    (``algorithms`` and ``algorithm_requests``, at most ``MAX_ALGORITHMS_COUNTED``
+    distinct ones, the rest under ``other``); republished when they change.
 ``~debug_image`` (sensor_msgs/Image, rgb8)
     The view with the detections drawn; rendered only while subscribed.
 """
@@ -135,7 +135,6 @@ Topics and services:
 from __future__ import annotations
 
 import io
-import json
 import queue
 import threading
 import time
@@ -145,11 +144,11 @@ from dataclasses import dataclass
 import numpy as np
 import rospy
 from sensor_msgs.msg import Image
-from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError, load_algorithms
 from drvs.client_cache import ClosingCache
 from drvs.guard import RESTART, LoopGuard
+from drvs.msg import VisionSystemStats
 from drvs.retry import retry_delay
 from drvs.ros.conversions import (
     msg_to_box,
@@ -158,6 +157,7 @@ from drvs.ros.conversions import (
     refusal_to_detect_response,
 )
 from drvs.ros.frame_sources import FrameUnavailable, RenderSource, TopicSource
+from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame
@@ -274,21 +274,7 @@ class VisionSystemNode:
         self.algorithms = load_algorithms(params.min_area, params.epsilon, params.tag_height, tag_heights)
         self._streaming_until = -1.0  # motion: observe the stream until then (rospy time)
         self.service_name = ''
-        self.stats = dict.fromkeys(
-            (
-                'requests',
-                'refused',
-                'callbacks',
-                'callback_failures',
-                'callback_bytes',
-                'renders',
-                'no_frame',
-                'cache_hits',
-                'registrations',
-                'objects',
-            ),
-            0,
-        )
+        self.stats = dict.fromkeys(STATS_COUNTERS, 0)
         self._stats_lock = threading.Lock()  # guards stats and requests_by_algorithm
         self.requests_by_algorithm: dict[str, int] = {}
         self._callback_clients = ClosingCache(
@@ -304,7 +290,7 @@ class VisionSystemNode:
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
-        self.stats_pub = rospy.Publisher('~stats', String, queue_size=1, latch=True)
+        self.stats_pub = rospy.Publisher('~stats', VisionSystemStats, queue_size=1, latch=True)
         self.debug_pub = rospy.Publisher('~debug_image', Image, queue_size=1)
         self.source.start()
         self._register_client = ServiceClient(
@@ -546,10 +532,8 @@ class VisionSystemNode:
 
     def _publish_stats(self) -> None:
         with self._stats_lock:
-            text = json.dumps(
-                {**self.stats, 'requests_by_algorithm': self.requests_by_algorithm}, sort_keys=True
-            )
-        self.stats_pub.publish(String(text))
+            message = stats_to_msg(self.stats, self.requests_by_algorithm, rospy.get_time())
+        self.stats_pub.publish(message)
 
     def _debug_loop(self) -> None:
         period = 1.0 / self.params.debug_rate

@@ -19,15 +19,17 @@ Topics:
 
 ``/robot/cmd_vel`` (geometry_msgs/Twist, subscribed)
     ``linear.x``, ``linear.y``: the robot's velocity in ``map``, m/s.
-``~poses`` = ``/world_sim/poses`` (std_msgs/String, JSON, every step)
-    ``{"stamp": seconds, "poses": {"NAME": [x, y, yaw], ...}}`` for every body
-    (``robot``, ``station`` and each object). For the vision systems, which
-    render the world from it; robots never read it.
+``~poses`` = ``/world_sim/poses`` (drvs/BodyPoses, every step)
+    ``header.stamp`` (the state's time), ``names`` and ``poses`` (x, y, theta = yaw) of
+    every body (``robot``, ``station`` and each object). For the vision systems and
+    sim_camera, which render the world from it; robots never read it.
 ``~ground_truth`` = ``/world_sim/ground_truth`` (std_msgs/String, JSON, every step)
     ``{"stamp", "time" (simulated seconds), "robot": {"position": [x, y], "yaw",
     "command": [vx, vy]}, "contacts" (count of new touches so far), "touching"
     (names, ``floor_edge`` for the edge), "blocked", "travelled" (m), "objects"}``.
-    For tests and the scenario recorder only: a robot must never subscribe to it.
+    For tests and the scenario recorder only: a robot must never subscribe to it. It
+    stays JSON on purpose: it is an observer's view of the simulation, not part of the
+    DRVS interface, and its shape follows :meth:`drvs.simulation.Simulation.ground_truth`.
 
 The simulation loop is guarded (:class:`drvs.guard.LoopGuard`): a step that raises
 is logged with its traceback and the loop restarts; one that keeps failing shuts
@@ -46,6 +48,8 @@ from geometry_msgs.msg import Twist
 from std_msgs.msg import String
 
 from drvs.guard import RESTART, LoopGuard
+from drvs.msg import BodyPoses
+from drvs.ros.messages import body_poses_to_msg
 from drvs.simulation import Simulation
 from drvs.world import load_world
 
@@ -79,7 +83,7 @@ class WorldSimNode:
 
     def start(self) -> None:
         self.simulation = Simulation(self.world)
-        self.poses_pub = rospy.Publisher('~poses', String, queue_size=2)
+        self.poses_pub = rospy.Publisher('~poses', BodyPoses, queue_size=2)
         self.truth_pub = rospy.Publisher('~ground_truth', String, queue_size=2)
         rospy.Subscriber('/robot/cmd_vel', Twist, self._on_cmd_vel, queue_size=2)
         self._last_tick = rospy.get_time()
@@ -128,9 +132,9 @@ class WorldSimNode:
                 self.simulation.set_command(0.0, 0.0)
                 self._last_command = None
             self.simulation.step(dt)
-            poses = {name: [round(v, 6) for v in pose] for name, pose in self.simulation.poses().items()}
+            poses = self.simulation.poses()
             truth = self.simulation.ground_truth()
-        self.poses_pub.publish(String(json.dumps({'stamp': now, 'poses': poses})))
+        self.poses_pub.publish(body_poses_to_msg(poses, now))
         self.truth_pub.publish(String(json.dumps({'stamp': now, **truth})))
 
     def stop(self) -> None:

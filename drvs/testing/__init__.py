@@ -6,9 +6,12 @@ from drvs.testing.harness import (
     RosHarness,
     RosMaster,
     WaitTimeout,
+    echo,
     free_port,
+    points,
     processes_of_session,
     read_json_lines,
+    seconds,
     wait_for,
 )
 
@@ -18,8 +21,11 @@ __all__ = [
     'RosHarness',
     'RosMaster',
     'WaitTimeout',
+    'echo',
     'free_port',
+    'points',
     'processes_of_session',
     'read_json_lines',
+    'seconds',
     'wait_for',
 ]

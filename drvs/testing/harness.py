@@ -13,6 +13,7 @@ Nothing here imports rospy: the harness talks to the master over XML-RPC.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import socket
@@ -24,6 +25,8 @@ import uuid
 import xmlrpc.client
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+
+import yaml
 
 REPO = Path(__file__).resolve().parents[2]
 SESSION_VARIABLE = 'DRVS_TEST_SESSION'
@@ -404,3 +407,36 @@ def read_json_lines(path: str | os.PathLike) -> list[dict]:
     except FileNotFoundError:
         return []
     return [json.loads(line) for line in text.splitlines() if line.endswith('}')]
+
+
+class _EchoLoader(yaml.SafeLoader):
+    """YAML as ``rostopic echo`` prints it: its ``nan``, ``inf`` and ``-inf`` are floats."""
+
+
+_EchoLoader.add_implicit_resolver('tag:yaml.org,2002:float', re.compile(r'^(?:[-+]?inf|nan)$'), list('-+in'))
+
+
+def echo(ros: RosHarness, topic: str, timeout: float = 30.0) -> dict:
+    """One message of ``topic`` as ``rostopic echo -n 1`` prints it, parsed (YAML -> dict).
+
+    A time is ``{'secs', 'nsecs'}`` (see :func:`seconds`), a geometry_msgs/Polygon
+    ``{'points': [{'x', 'y', 'z'}, ...]}`` (see :func:`points`), NaN a float NaN.
+    """
+    result = ros.run(f'rostopic echo -n 1 {topic}', timeout=timeout)
+    assert result.returncode == 0, f'rostopic echo -n 1 {topic}: {result.stderr}'
+    return parse_echo(result.stdout.split('\n---')[0])
+
+
+def parse_echo(text: str) -> dict:
+    """A message printed as ``rostopic echo`` does (``genpy.message.strify_message``) -> dict."""
+    return yaml.load(text, Loader=_EchoLoader)
+
+
+def seconds(time: dict) -> float:
+    """An echoed time (``{'secs', 'nsecs'}``) in seconds."""
+    return time['secs'] + time['nsecs'] * 1e-9
+
+
+def points(polygon: dict) -> list[list[float]]:
+    """An echoed geometry_msgs/Polygon as ``[[x, y], ...]``."""
+    return [[point['x'], point['y']] for point in polygon['points']]

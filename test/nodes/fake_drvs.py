@@ -29,7 +29,8 @@ Parameters: ``~world`` (required), ``~output`` (JSON lines, required),
 Output lines (``kind``): ``request`` (time, role, request_id, roi, vision_systems,
 status name, retry_after), ``appear`` (name, robot), ``truth`` every 0.2 s (time,
 robot position, contacts, cmd_vels received so far, the robot's latest
-/robot/status as ``status``). Times are seconds since the fake started.
+/robot/status as ``status``: :func:`drvs.ros.messages.robot_status_to_dict`). Times
+are seconds since the fake started.
 """
 
 import json
@@ -43,10 +44,11 @@ import rospy
 from geometry_msgs.msg import Twist
 from shapely.geometry import Point as ShapelyPoint
 from shapely.geometry import Polygon, box
-from std_msgs.msg import String
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.msg import RobotStatus
 from drvs.ros.conversions import msg_to_box, points_to_detected_object
+from drvs.ros.messages import robot_status_to_dict
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -256,14 +258,14 @@ class FakeDrvs:
 
     def on_status(self, msg):
         with self.lock:
-            self.status = json.loads(msg.data)
+            self.status = robot_status_to_dict(msg)
 
 
 def main():
     rospy.init_node('drvs')
     fake = FakeDrvs()
     rospy.Subscriber('/robot/cmd_vel', Twist, fake.on_cmd_vel, queue_size=1)
-    rospy.Subscriber('/robot/status', String, fake.on_status, queue_size=1)
+    rospy.Subscriber('/robot/status', RobotStatus, fake.on_status, queue_size=1)
     rospy.Timer(rospy.Duration(STEP), fake.step)
     rospy.Timer(rospy.Duration(0.2), fake.report)
     threading.Thread(target=fake.deliver, daemon=True).start()

@@ -1,17 +1,21 @@
 #!/usr/bin/env python3
-"""A std_msgs/String subscriber for tests: appends every message to ``~output`` as one JSON line.
+"""A subscriber for tests: appends every message of a topic, of any type, to ``~output`` as one JSON line.
 
 Parameters: ``~topic`` (required; e.g. ``/drvs/registry``), ``~output`` (file, required).
 Each line: ``time`` (``time.monotonic()`` when it arrived: the same clock as the
-test process's on Linux) and ``data`` (the text, decoded if it is JSON).
+test process's on Linux), ``type`` (e.g. ``drvs/Registry``) and ``data`` (the message
+as ``rostopic echo`` prints it, parsed: :func:`drvs.testing.harness.parse_echo`).
 """
 
 import json
 import threading
 import time
 
+import genpy.message
+import roslib.message
 import rospy
-from std_msgs.msg import String
+
+from drvs.testing.harness import parse_echo
 
 
 def main():
@@ -21,14 +25,13 @@ def main():
 
     def on_message(message):
         arrived = time.monotonic()
-        try:
-            data = json.loads(message.data)
-        except ValueError:
-            data = message.data
+        kind = message._connection_header['type']
+        decoded = roslib.message.get_message_class(kind)().deserialize(message._buff)
+        data = parse_echo(genpy.message.strify_message(decoded))
         with lock, open(output, 'a') as handle:
-            handle.write(json.dumps({'time': arrived, 'data': data}) + '\n')
+            handle.write(json.dumps({'time': arrived, 'type': kind, 'data': data}) + '\n')
 
-    rospy.Subscriber(rospy.get_param('~topic'), String, on_message, queue_size=100)
+    rospy.Subscriber(rospy.get_param('~topic'), rospy.AnyMsg, on_message, queue_size=100)
     rospy.spin()
 
 
