@@ -1,7 +1,6 @@
 """Health rules (drvs.health) and their publication on /diagnostics (drvs.ros.diagnostics)."""
 
 import doctest
-import io
 import sys
 import textwrap
 
@@ -12,14 +11,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from drvs import health
 from drvs.health import ERROR, OK, WARN, Health, robot_health, server_health, vision_system_health
 from drvs.ros.diagnostics import DiagnosticsPublisher, health_to_status, statuses_to_array
-
-
-def round_trip(message):
-    buffer = io.BytesIO()
-    message.serialize(buffer)
-    copy = type(message)()
-    copy.deserialize(buffer.getvalue())
-    return copy
+from drvs.testing.messages import round_trip
 
 
 @pytest.mark.parametrize(

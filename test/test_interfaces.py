@@ -1,7 +1,5 @@
 """The generated drvs types: importable, faithful to DESIGN.md, and round-trip serialisable."""
 
-import io
-
 import pytest
 from geometry_msgs.msg import Point32, Polygon
 
@@ -16,14 +14,7 @@ from drvs.srv import (
     RegisterVisionServiceRequest,
     RegisterVisionServiceResponse,
 )
-
-
-def round_trip(message):
-    buffer = io.BytesIO()
-    message.serialize(buffer)
-    copy = type(message)()
-    copy.deserialize(buffer.getvalue())
-    return copy
+from drvs.testing.messages import round_trip
 
 
 def square(x, y, side=0.5):

@@ -1,19 +1,13 @@
 """drvs.ros.markers: RViz markers of fields of view and detections (no master needed)."""
 
 import doctest
-import io
 
 import pytest
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import Marker
 
 import drvs.ros.markers
 from drvs.ros.markers import algorithm_colour, detection_markers, registry_markers
-
-
-def round_trip(array: MarkerArray) -> MarkerArray:
-    buffer = io.BytesIO()
-    array.serialize(buffer)
-    return MarkerArray().deserialize(buffer.getvalue())
+from drvs.testing.messages import round_trip
 
 
 def test_doctest():

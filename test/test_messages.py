@@ -1,7 +1,6 @@
 """The typed topic messages: conversions round-trip through serialize/deserialize, the constants
 match the controller's states, every field is documented and ``rosmsg show`` prints them."""
 
-import io
 import math
 import subprocess
 
@@ -25,6 +24,7 @@ from drvs.ros.messages import (
     stats_to_msg,
 )
 from drvs.testing.harness import REPO
+from drvs.testing.messages import round_trip as serialize_deserialize
 
 MESSAGES = {
     'VisionSystemEntry': VisionSystemEntry,
@@ -33,13 +33,6 @@ MESSAGES = {
     'RobotStatus': RobotStatus,
     'BodyPoses': BodyPoses,
 }
-
-
-def serialize_deserialize(message):
-    """``message`` through its wire format and back (catches fields of the wrong type)."""
-    buffer = io.BytesIO()
-    message.serialize(buffer)
-    return type(message)().deserialize(buffer.getvalue())
 
 
 def entry(name, points, expires_at, algorithms=('colour',)):
