@@ -26,13 +26,9 @@ def generate(project):
 def test_generation_is_idempotent_and_follows_an_edited_srv(tmp_path):
     project = copy_project(tmp_path)
     first = generate(project)
-    assert set(first) == {
-        '_BoundingBox.py',
-        '_DetectedObject.py',
-        '_CallbackCoordinates.py',
-        '_DetectObjectBoundary.py',
-        '_RegisterVisionService.py',
-    }
+    definitions = sorted((project / 'msg').glob('*.msg')) + sorted((project / 'srv').glob('*.srv'))
+    assert len(definitions) >= 10  # 7 messages, 3 services
+    assert set(first) == {f'_{path.stem}.py' for path in definitions}  # one module per definition
     assert generate(project) == first
     srv = project / 'srv/DetectObjectBoundary.srv'
     srv.write_text(srv.read_text().replace('string request_id', 'string request_id\nuint8 priority'))
