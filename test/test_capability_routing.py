@@ -175,6 +175,15 @@ def test_requests_reach_only_the_vision_systems_that_run_their_algorithm(cameras
         (service('plugin'), ['sift']),
         (service('tags'), ['apriltag', 'colour']),
     ]
+    # RViz: one field-of-view outline and one name per registered camera, after a DELETEALL.
+    markers = wait_for(
+        lambda: m if len((m := echo(cameras.ros, '/drvs/markers'))['markers']) == 1 + 2 * 4 else None,
+        30,
+        'one field-of-view marker and one name per camera on /drvs/markers',
+    )['markers']
+    assert markers[0]['action'] == 3  # DELETEALL: cameras that left disappear
+    assert sorted(m['text'] for m in markers if m['ns'] == 'names') == ['builtin', 'plain', 'plugin', 'tags']
+    assert all(m['header']['frame_id'] == 'map' for m in markers if m['ns'] == 'fields_of_view')
     assert f'registered {service("tags")} by /tags: field of view' in cameras.server.log()
     assert 'algorithms apriltag, colour' in cameras.server.log()
 

@@ -46,7 +46,9 @@ Topic: ``~registry`` (drvs/Registry, latched): every entry's ``service_name``,
 ``provider``, ``field_of_view``, ``algorithms`` and ``lease_expiry`` (ROS time), sorted
 by service name (algorithms sorted too), republished after every change (registration,
 move, change of algorithms, unregistration, expiry, removal; not renewals), at most
-once per ``~registry_period``.
+once per ``~registry_period``. With each, ``~markers`` (visualization_msgs/MarkerArray,
+latched, frame ``map``; :mod:`drvs.ros.markers`): a DELETEALL, then every registered
+field of view's outline and name, for RViz.
 
 Parameters:
 
@@ -91,6 +93,7 @@ from dataclasses import dataclass
 import cachetools
 import rosgraph.names
 import rospy
+from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
 from drvs.dispatch import Busy, Dispatcher
@@ -108,6 +111,7 @@ from drvs.registry import (
     algorithm_names,
 )
 from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
+from drvs.ros.markers import registry_markers
 from drvs.ros.messages import registry_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import (
@@ -228,6 +232,7 @@ class DrvsServer:
     def start(self) -> None:
         self.algorithms = default_algorithms()
         self._registry_publisher = rospy.Publisher('~registry', RegistryMsg, queue_size=1, latch=True)
+        self._markers_publisher = rospy.Publisher('~markers', MarkerArray, queue_size=1, latch=True)
         self.dispatcher.start()
         self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
         self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
@@ -591,7 +596,14 @@ class DrvsServer:
                 self._dirty = False
             if stop.is_set():
                 return
-            self._registry_publisher.publish(self.registry_msg())
+            registry = self.registry_msg()
+            self._registry_publisher.publish(registry)
+            self._markers_publisher.publish(
+                registry_markers(
+                    [(e.service_name, polygon_to_points(e.field_of_view)) for e in registry.vision_systems],
+                    registry.header.stamp,
+                )
+            )
             stop.wait(self.settings.registry_period)
 
     def registry_msg(self) -> RegistryMsg:
