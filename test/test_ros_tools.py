@@ -4,6 +4,16 @@ import pytest
 
 from drvs.testing import RosHarness
 
+STATUS_CONSTANTS = [
+    'uint8 ACCEPTED=0',
+    'uint8 INVALID=1',
+    'uint8 BUSY=2',
+    'uint8 RATE_LIMITED=3',
+    'uint8 UNAVAILABLE=4',
+    'uint8 UNSUPPORTED=5',
+]
+"""Both services' responses list the same status constants."""
+
 
 def test_rossrv_show_prints_the_contract(ros: RosHarness):
     result = ros.run('rossrv show drvs/DetectObjectBoundary')
@@ -19,12 +29,7 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
         'string callback_service',
         'string request_id',
         '---',
-        'uint8 ACCEPTED=0',
-        'uint8 INVALID=1',
-        'uint8 BUSY=2',
-        'uint8 RATE_LIMITED=3',
-        'uint8 UNAVAILABLE=4',
-        'uint8 UNSUPPORTED=5',
+        *STATUS_CONSTANTS,
         'bool accepted',
         'uint8 status',
         'string message',
@@ -39,12 +44,7 @@ def test_rossrv_show_lists_the_registration_lease_and_status(ros: RosHarness):
     lines = [line.strip() for line in result.stdout.splitlines() if line.strip()]
     assert 'string[] algorithms' in lines[: lines.index('---')]
     assert lines[lines.index('---') + 1 :] == [
-        'uint8 ACCEPTED=0',
-        'uint8 INVALID=1',
-        'uint8 BUSY=2',
-        'uint8 RATE_LIMITED=3',
-        'uint8 UNAVAILABLE=4',
-        'uint8 UNSUPPORTED=5',
+        *STATUS_CONSTANTS,
         'bool accepted',
         'uint8 status',
         'string message',

@@ -32,7 +32,7 @@ import time
 import psutil
 import pytest
 from geometry_msgs.msg import Polygon
-from test_server import CALLBACK, COLOUR, Graph, square
+from test_server import CALLBACK, COLOUR, square
 
 from drvs import status
 from drvs.msg import BoundingBox
@@ -52,19 +52,6 @@ def registration(service_name, field_of_view):
     return RegisterVisionService._request_class(service_name=service_name, field_of_view=field_of_view)
 
 
-@pytest.fixture
-def graph(ros, monkeypatch, tmp_path):
-    made = []
-
-    def make(**params):
-        made.append(Graph(ros, monkeypatch, tmp_path, **params))
-        return made[-1]
-
-    yield make
-    for graph in made:
-        graph.close()
-
-
 def detect_request(box=(0.5, 0.5, 1.0, 1.0), request_id='r', callback=CALLBACK):
     return DetectObjectBoundary._request_class(COLOUR, BoundingBox(*box), callback, request_id)
 
@@ -73,8 +60,8 @@ def forwarded_ids(graph, name):
     return [r['request_id'] for r in graph.forwards(name)]
 
 
-def test_a_vision_system_may_not_move_or_unregister_another(ros, graph):
-    g = graph(lease=3600)
+def test_a_vision_system_may_not_move_or_unregister_another(ros, make_graph):
+    g = make_graph(lease=3600)
     g.camera('vs1', square(0, 0, 2, 2))
     g.camera('vs2', square(5, 5, 6, 6))
     # vs2, itself a registered provider, speaks for itself (its own caller id) about vs1's service.
@@ -110,8 +97,8 @@ def test_a_vision_system_may_not_move_or_unregister_another(ros, graph):
     ]
 
 
-def test_a_callback_service_of_another_kind_is_invalid(ros, graph):
-    g = graph()
+def test_a_callback_service_of_another_kind_is_invalid(ros, make_graph):
+    g = make_graph()
     g.camera('vs1', square(0, 0, 2, 2))
     expected = 'expected drvs/CallbackCoordinates'
     cases = [
@@ -136,8 +123,8 @@ def test_a_callback_service_of_another_kind_is_invalid(ros, graph):
     wait_for(lambda: forwarded_ids(g, 'vs1') == ['good callback'], 10, 'the good forward alone')
 
 
-def test_the_server_refuses_to_register_its_own_service(ros, graph):
-    g = graph(lease=3600)
+def test_the_server_refuses_to_register_its_own_service(ros, make_graph):
+    g = make_graph(lease=3600)
     g.camera('cam', square(0, 0, 2, 2))
     spoofed = ServiceClient(REGISTER, RegisterVisionService, 10.0, caller_id='/drvs')
     try:
@@ -160,8 +147,8 @@ LIMITED = re.compile(
 )
 
 
-def test_a_fast_caller_is_rate_limited_while_another_is_served(ros, graph):
-    g = graph(max_requests_per_s=RATE, burst=BURST)
+def test_a_fast_caller_is_rate_limited_while_another_is_served(ros, make_graph):
+    g = make_graph(max_requests_per_s=RATE, burst=BURST)
     a = ServiceClient(DETECT, DetectObjectBoundary, 10.0, caller_id='/a')
     a_register = ServiceClient(REGISTER, RegisterVisionService, 10.0, caller_id='/a')
     b = ServiceClient(DETECT, DetectObjectBoundary, 10.0, caller_id='/b')

@@ -77,19 +77,6 @@ class Graph:
         return registry
 
 
-@pytest.fixture
-def make_graph(ros, monkeypatch, tmp_path):
-    made = []
-
-    def make(**params):
-        made.append(Graph(ros, monkeypatch, tmp_path, **params))
-        return made[-1]
-
-    yield make
-    for graph in made:
-        graph.close()
-
-
 def forwarded_ids(graph, name):
     return [r['request_id'] for r in graph.forwards(name)]
 

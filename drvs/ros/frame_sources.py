@@ -27,9 +27,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from drvs.camera import PinholeCamera
 from drvs.frame_feed import FrameFeed, FrameTimeout
-from drvs.msg import BodyPoses
 from drvs.optics import CameraModel
-from drvs.ros.messages import body_poses_from_msg
+from drvs.ros.world_poses import LatestPoses
 from drvs.scene import Frame, Scene
 from drvs.simulation import mount_position
 from drvs.transforms import matrix_from_quaternion
@@ -64,15 +63,14 @@ class RenderSource:
         self._count = count
         self.scene: Scene | None = None
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe
-        self._poses_lock = threading.Lock()
-        self._poses: dict | None = None
+        self.poses = LatestPoses(params.poses_topic)
         self._start_time = 0.0
         self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
 
     def start(self) -> None:
         self.scene = Scene(self.world)
         self._start_time = rospy.get_time()
-        rospy.Subscriber(self.params.poses_topic, BodyPoses, self._on_poses, queue_size=1)
+        self.poses.start()
 
     def describe(self) -> str:
         camera = self.base_camera
@@ -87,18 +85,8 @@ class RenderSource:
             return self.base_camera
         return self.base_camera.moved_to(*mount_position(self.config, stamp - self._start_time))
 
-    def _on_poses(self, message: BodyPoses) -> None:
-        try:
-            _, poses = body_poses_from_msg(message)
-        except ValueError as error:
-            rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
-            return
-        with self._poses_lock:
-            self._poses = poses
-
     def _capture(self, stamp: float) -> Frame:
-        with self._poses_lock:
-            poses = self._poses
+        _, poses = self.poses.latest()
         with self._scene_lock:
             if self.scene is None:
                 raise FrameUnavailable('the vision system is shutting down')

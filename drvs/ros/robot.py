@@ -247,6 +247,7 @@ class BlindRobot:
         )
         self.perception = Perception(world.colour_models)
         self._trail: collections.deque = collections.deque()  # (time, position) of recent fixes
+        self._trail_shape = Polygon()  # their union, grown by the robot's radius
         self.memory = ObstacleMemory(params.obstacle_ttl)
         self.grid = CostGrid(GridSpec(self.floor_size, params.resolution), self.robot_radius)
         self.settings = ControllerSettings(
@@ -482,12 +483,17 @@ class BlindRobot:
         robot in while it stood still reports the floor it uncovers as "moving" for a while (a
         ghost of itself), which must not block it."""
         trail = self._trail
+        changed = False
         if fix is not None and (not trail or trail[-1][1] != fix.position):
             trail.append((now, fix.position))
+            changed = True
         while trail and now - trail[0][0] > OWN_TRAIL:
             trail.popleft()
-        radius = self.robot_radius + BODY_MARGIN
-        return unary_union([Point(position).buffer(radius) for _, position in trail]) if trail else Polygon()
+            changed = True
+        if changed:  # new fixes come a few times a second; the control loop ticks faster
+            radius = self.robot_radius + BODY_MARGIN
+            self._trail_shape = unary_union([Point(position).buffer(radius) for _, position in trail])
+        return self._trail_shape
 
     def _update_map(self, now: float, sources, fix, station) -> None:
         objects = []

@@ -79,10 +79,9 @@ from std_msgs.msg import Header
 from drvs.camera import PinholeCamera
 from drvs.guard import RESTART, LoopGuard
 from drvs.lens import Lens
-from drvs.msg import BodyPoses
 from drvs.optics import intrinsics_of, optical_pose_of
-from drvs.ros.messages import body_poses_from_msg
 from drvs.ros.params import read_params
+from drvs.ros.world_poses import LatestPoses
 from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
 from drvs.simulation import mount_position
 from drvs.transforms import quaternion_from_matrix
@@ -269,9 +268,7 @@ class SimCameraNode:
                 raise ValueError(f'{self.world.path}: vision_systems {config.name}: {error}') from None
         self.scene: Scene | None = None
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene
-        self._poses_lock = threading.Lock()  # guards _poses and _poses_stamp
-        self._poses: dict | None = None
-        self._poses_stamp: float | None = None
+        self.poses = LatestPoses(params.poses_topic)
         self._stopping = threading.Event()
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._start_time = 0.0
@@ -288,7 +285,7 @@ class SimCameraNode:
         fixed = [self._transform(feed, feed.camera, now) for feed in self.feeds if not feed.config.moving]
         if fixed:
             self.static_broadcaster.sendTransform(fixed)
-        rospy.Subscriber(self.params.poses_topic, BodyPoses, self._on_poses, queue_size=1)
+        self.poses.start()
         self.guard.spawn(self._render_loop, 'render', RESTART)
         rospy.on_shutdown(self.stop)
         for feed in self.feeds:
@@ -324,16 +321,6 @@ class SimCameraNode:
         for feed in self.feeds:
             feed.unadvertise()
 
-    # -- poses ---------------------------------------------------------------------------------
-    def _on_poses(self, message: BodyPoses) -> None:
-        try:
-            stamp, poses = body_poses_from_msg(message)
-        except ValueError as error:
-            rospy.logwarn_throttle(10.0, '%s: unreadable poses message: %s', rospy.get_name(), error)
-            return
-        with self._poses_lock:
-            self._poses, self._poses_stamp = poses, stamp
-
     # -- rendering -----------------------------------------------------------------------------
     def _render_loop(self) -> None:
         period = 1.0 / self.params.rate
@@ -364,8 +351,7 @@ class SimCameraNode:
 
     def render(self, feed: Feed) -> Frame | None:
         """The camera's view of the latest poses, distorted by its lens; None if it shows nothing new."""
-        with self._poses_lock:
-            poses, stamp = self._poses, self._poses_stamp
+        stamp, poses = self.poses.latest()
         if stamp is None:
             stamp = rospy.get_time()  # no poses yet: the world file's, now
         if stamp == feed.last_stamp:
