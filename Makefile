@@ -3,10 +3,14 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup test test-slow soak reliability-report demo lint format clean
+.PHONY: setup rviz-setup test test-slow soak reliability-report demo lint format docs clean
 
 setup:
 	@bash scripts/setup.sh
+
+# Debian's rviz and xvfb too (for run_scenario.sh --rviz and the RViz screenshot test).
+rviz-setup:
+	@bash scripts/setup.sh --rviz
 
 test: setup
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
@@ -38,6 +42,10 @@ lint: setup
 format: setup
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
+
+# README.md's parameter tables, from the nodes' settings dataclasses (test/test_param_docs.py checks them).
+docs: setup
+	$(PY) -m drvs.ros.param_docs --write README.md
 
 clean:
 	rm -rf build *.egg-info drvs/msg drvs/srv out .pytest_cache

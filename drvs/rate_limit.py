@@ -66,6 +66,16 @@ class RateLimiter:
         with self._lock:
             return len(self._buckets)
 
+    def limited(self) -> int:
+        """How many keys would be refused now: those with less than one token left."""
+        with self._lock:
+            now = self.clock()
+            return sum(
+                1
+                for counted, at in self._buckets.values()
+                if counted + max(0.0, now - at) * self.rate < 1 - _ROUNDING
+            )
+
     def take(self, key: str) -> float:
         """Take one token from ``key``'s bucket.
 

@@ -275,6 +275,12 @@ class Registry:
             until = self._ejections.get(service_name, (0, 0.0, ''))[1]
             return until if until > self.clock() else None
 
+    def ejected(self) -> int:
+        """How many vision systems are ejected now (their registrations refused ``UNAVAILABLE``)."""
+        with self._lock:
+            now = self.clock()
+            return sum(1 for _, until, _ in self._ejections.values() if until > now)
+
     def unregister(self, service_name: str) -> Registration | None:
         """Remove ``service_name``; return its entry (close its client), None if it was not registered."""
         with self._lock:

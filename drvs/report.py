@@ -3,7 +3,8 @@
 :class:`RunRecord` holds the recording (plans, driven trajectory, re-plans,
 fields of view, the robot's map, per-camera traffic, CPU use). :func:`summary`
 turns it into the ``summary.json`` dictionary and :func:`draw` into the
-picture, in the style of the paper's Figures 7, 8, 10 and 11.
+picture, in the style of the paper's Figures 7, 8, 10 and 11; :func:`write_report`
+writes both and ``trace.json`` (the live recorder and ``drvs_report`` share it).
 :func:`hindsight_shortest_length` is the shortest collision-free route among
 the world's static obstacles, computed on a visibility graph (exact for
 polygonal obstacles, unlike a grid).
@@ -12,6 +13,7 @@ polygonal obstacles, unlike a grid).
 from __future__ import annotations
 
 import heapq
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,8 +109,8 @@ def summary(record: RunRecord, best_length: float) -> dict:
         'best_length': round(best_length, 3) if math.isfinite(best_length) else None,
         'replans': record.replans,
         'collisions': record.collisions,
-        'vision_systems': record.vision_systems,
-        'cpu': record.cpu,
+        'vision_systems': dict(sorted(record.vision_systems.items())),
+        'cpu': dict(sorted(record.cpu.items())),
     }
 
 
@@ -122,6 +124,21 @@ def trace(record: RunRecord) -> dict:
         'fields_of_view': record.fields_of_view,
         'tag_poses': record.tag_poses,
     }
+
+
+def write_report(record: RunRecord, out: str | Path) -> dict:
+    """Write ``summary.json``, ``trace.json`` and ``run.png`` into ``out``; return the summary.
+
+    The best length is the hindsight route for the robot's clearance (half its diagonal).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    radius = math.hypot(*record.world.robot.size[:2]) / 2.0
+    result = summary(record, hindsight_shortest_length(record.world, radius))
+    (out / 'summary.json').write_text(json.dumps(result, indent=2) + '\n')
+    (out / 'trace.json').write_text(json.dumps(trace(record)) + '\n')
+    draw(record, out / 'run.png')
+    return result
 
 
 def draw(record: RunRecord, path: str | Path) -> None:

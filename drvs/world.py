@@ -2,7 +2,7 @@
 
 Every error names the file, the key and what was expected, for example
 ``worlds/x.yaml: objects[2].size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]``.
-The keys are documented in ``worlds/README.md``; the stable core is in DESIGN.md.
+The keys are documented in ``worlds/README.md``; the stable core is in docs/design.md.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 # Installs the Debian packages the project needs, creates .venv from Debian's
 # /usr/bin/python3 with --system-site-packages, installs pybullet and the test
 # tools into it, and installs the project (which generates drvs.msg and
-# drvs.srv). Idempotent: a second run that finds everything in place does no
+# drvs.srv); with --rviz also Debian's rviz and xvfb. Idempotent: a second run that finds everything in place does no
 # installs and finishes within seconds. Works as root or through sudo.
 set -euo pipefail
 
@@ -22,7 +22,16 @@ APT_PACKAGES=(
   python3-cachetools python3-hypothesis
   python3-cv-bridge python3-image-geometry python3-tf2-ros python3-message-filters tf2-tools
   python3-diagnostic-msgs ros-diagnostic-msgs python3-visualization-msgs ros-visualization-msgs
+  python3-rosbag
 )
+# RViz and a virtual display for its screenshot test, only when asked for:
+# `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).
+for arg in "$@"; do
+  case "$arg" in
+    --rviz) APT_PACKAGES+=(rviz xvfb) ;;
+    *) printf 'setup: unknown option %s (the only one is --rviz)\n' "$arg" >&2; exit 2 ;;
+  esac
+done
 # The test tools and the PyPI wheels, pinned to what the project was checked with.
 PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)
 

@@ -227,7 +227,7 @@ def test_ctrl_c_stops_the_robot_cleanly(ros):
     'params, message',
     [
         ({'rate': 0}, '~rate: must be positive, got 0'),
-        ({'roi_margin': -1.0}, '~roi_margin: must be >= 0, got -1.0'),
+        ({'roi_margin': -1.0}, '~roi_margin: must not be negative, got -1.0'),
         ({'world': '/nonexistent.yaml'}, '/nonexistent.yaml: cannot read the world file'),
     ],
 )

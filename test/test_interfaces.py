@@ -1,4 +1,4 @@
-"""The generated drvs types: importable, faithful to DESIGN.md, and round-trip serialisable."""
+"""The generated drvs types: importable, faithful to docs/design.md, and round-trip serialisable."""
 
 import pytest
 from geometry_msgs.msg import Point32, Polygon

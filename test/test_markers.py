@@ -37,7 +37,7 @@ def test_detections_are_coloured_by_algorithm_name_and_fade():
     assert [m.id for m in array.markers] == [0, 1]
     marker = array.markers[0]
     assert marker.ns == 'detections/vs1/detect_object_boundary/colour:0,0,150,80,80,255'
-    assert marker.lifetime.to_sec() == 1.0
+    assert marker.lifetime.to_sec() == 3.0
     expected = algorithm_colour('colour')  # by NAME: every colour model looks alike
     assert [marker.color.r, marker.color.g, marker.color.b] == pytest.approx(expected[:3], abs=1e-6)
     assert algorithm_colour('colour:1,2,3,4,5,6') != algorithm_colour('apriltag:tag36h11')

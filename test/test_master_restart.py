@@ -315,7 +315,10 @@ def test_a_hung_master_is_waited_for_and_a_new_one_gets_everything_again(ros, tm
         'registered again',
         on_timeout=ros.describe,
     )
-    assert f'restarted (pid {first} -> {second})' in node.log()
+    # It registers first and logs after: wait for the line rather than race it.
+    wait_for(
+        logged(f'restarted (pid {first} -> {second})'), 10, 'the restart logged', on_timeout=node.describe
+    )
 
     # And a restart quicker than the poll period too (the pid changed).
     third = ros.master.restart()

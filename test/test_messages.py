@@ -9,7 +9,15 @@ import pytest
 from shapely.geometry import Polygon
 
 from drvs import controller
-from drvs.msg import BodyPoses, Registry, RobotStatus, VisionSystemEntry, VisionSystemStats
+from drvs.msg import (
+    BodyPoses,
+    NodeCpu,
+    RecorderSample,
+    Registry,
+    RobotStatus,
+    VisionSystemEntry,
+    VisionSystemStats,
+)
 from drvs.registry import Registration
 from drvs.ros.messages import (
     ROBOT_STATES,
@@ -32,6 +40,8 @@ MESSAGES = {
     'VisionSystemStats': VisionSystemStats,
     'RobotStatus': RobotStatus,
     'BodyPoses': BodyPoses,
+    'NodeCpu': NodeCpu,
+    'RecorderSample': RecorderSample,
 }
 
 

@@ -1,14 +1,23 @@
-"""read_params: every node reads its ~parameters into its settings dataclass the same way."""
+"""read_params and drvs.settings: ~parameters read one way, ranges checked in one place."""
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import pytest
 
 from drvs.ros.params import read_params
+from drvs.ros.recorder import RecorderSettings
+from drvs.ros.robot import RobotParams
+from drvs.ros.server import ServerSettings
+from drvs.ros.sim_camera import SimCameraParams
+from drvs.ros.vision_system import VisionSystemParams
+from drvs.ros.world_sim import WorldSimSettings
+from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, at_least, between, one_of, param
 
 
 @dataclass(frozen=True)
-class Settings:
+class Plain:
     world: str
     rate: float = 5.0
     workers: int = 2
@@ -21,15 +30,13 @@ def reading(**given):
 
 
 def test_defaults_fill_what_is_not_given_and_ints_become_floats():
-    assert read_params(Settings, get=reading(world='w.yaml', rate=10)) == Settings(
-        'w.yaml', 10.0, 2, False, None
-    )
-    assert read_params(Settings, get=reading(world='w.yaml', speed=1)).speed == 1.0
+    assert read_params(Plain, get=reading(world='w.yaml', rate=10)) == Plain('w.yaml', 10.0, 2, False, None)
+    assert read_params(Plain, get=reading(world='w.yaml', speed=1)).speed == 1.0
 
 
 def test_run_time_defaults_replace_the_dataclass_defaults_but_not_given_values():
-    assert read_params(Settings, {'world': 'd.yaml', 'workers': 4}, get=reading()).workers == 4
-    assert read_params(Settings, {'workers': 4}, get=reading(world='w', workers=3)).workers == 3
+    assert read_params(Plain, {'world': 'd.yaml', 'workers': 4}, get=reading()).workers == 4
+    assert read_params(Plain, {'workers': 4}, get=reading(world='w', workers=3)).workers == 3
 
 
 @pytest.mark.parametrize(
@@ -46,5 +53,111 @@ def test_run_time_defaults_replace_the_dataclass_defaults_but_not_given_values()
 )
 def test_missing_and_mistyped_parameters_are_named(given, message):
     with pytest.raises(ValueError) as error:
-        read_params(Settings, get=reading(**given))
+        read_params(Plain, get=reading(**given))
     assert str(error.value) == message
+
+
+# -- declared ranges, checked in one place (drvs.settings) ------------------------------------
+@dataclass(frozen=True)
+class Declared(Settings):
+    world: str = param(REQUIRED, 'the world file')
+    lease: float = param(
+        10.0, 'a registration expires unless renewed within this time', unit='s', check=POSITIVE
+    )
+    period: float = param(0.2, 'minimum time between two messages', unit='s', check=NON_NEGATIVE)
+    workers: int = param(8, 'threads', check=at_least(1))
+    quality: int = param(90, 'JPEG quality', check=between(1, 100))
+    source: str = param('render', 'where frames come from', check=one_of('render', 'topic'))
+    speed: float | None = param(None, 'top speed', unit='m/s', check=POSITIVE)
+    cameras: str = param('', 'cameras, comma-separated or a list', separator=',')
+
+
+@pytest.mark.parametrize(
+    'given, message',
+    [
+        ({'lease': -1}, '~lease: must be positive, got -1.0'),
+        ({'lease': 0.0}, '~lease: must be positive, got 0.0'),
+        ({'period': -0.5}, '~period: must not be negative, got -0.5'),
+        ({'workers': 0}, '~workers: must be at least 1, got 0'),
+        ({'quality': 0}, '~quality: must be 1 to 100, got 0'),
+        ({'quality': 101}, '~quality: must be 1 to 100, got 101'),
+        ({'source': 'x'}, "~source: must be one of render, topic, got 'x'"),
+        ({'speed': -1.0}, '~speed: must be positive, got -1.0'),
+        ({'lease': math.inf}, '~lease: expected a number, got inf'),
+        ({'period': math.nan}, '~period: expected a number, got nan'),
+        ({'workers': 2.0}, '~workers: expected an integer, got 2.0'),
+        ({'world': None}, '~world: expected a string, got None'),
+    ],
+)
+def test_every_kind_of_range_has_one_wording_whether_read_or_built(given, message):
+    with pytest.raises(ValueError) as read:
+        read_params(Declared, get=reading(**{'world': 'w', **given}))
+    with pytest.raises(ValueError) as built:
+        Declared(**{'world': 'w', **given})
+    assert str(read.value) == str(built.value) == message
+
+
+def test_values_in_range_pass_ints_become_floats_and_none_is_not_checked():
+    built = Declared(world='w', lease=1, period=0, workers=1, quality=100, source='topic')
+    assert (built.lease, built.period, built.speed) == (1.0, 0.0, None)
+    assert isinstance(built.lease, float) and isinstance(built.period, float)
+
+
+def test_a_list_is_joined_for_a_field_declared_with_a_separator_only():
+    assert read_params(Declared, get=reading(world='w', cameras=['vs1', 'vs2'])).cameras == 'vs1,vs2'
+    with pytest.raises(ValueError) as error:
+        read_params(Declared, get=reading(world='w', cameras=[1, 2]))
+    assert str(error.value) == '~cameras: expected a string or a list of strings, got [1, 2]'
+    with pytest.raises(ValueError) as error:
+        read_params(Declared, get=reading(world=['w']))
+    assert str(error.value) == "~world: expected a string, got ['w']"
+
+
+@pytest.mark.parametrize(
+    'build, message',
+    [
+        (lambda: ServerSettings(lease=0), '~lease: must be positive, got 0.0'),
+        (lambda: ServerSettings(workers=0), '~workers: must be at least 1, got 0'),
+        (lambda: ServerSettings(callback_cache=-1), '~callback_cache: must not be negative, got -1.0'),
+        (
+            lambda: ServerSettings(ejection_time=20, max_ejection_time=10),
+            '~max_ejection_time: must be at least ~ejection_time (20.0), got 10.0',
+        ),
+        (
+            lambda: VisionSystemParams(camera='vs1', source='render'),
+            '~world: required with ~source render (or use ~source topic and a camera topic)',
+        ),
+        (
+            lambda: VisionSystemParams(camera='vs1', source='x'),
+            "~source: must be one of render, topic, got 'x'",
+        ),
+        (lambda: RobotParams(world='w', roi_margin=-1), '~roi_margin: must not be negative, got -1.0'),
+        (lambda: RobotParams(world='w', speed=math.inf), '~speed: expected a number, got inf'),
+        (
+            lambda: SimCameraParams(world='w', compression='bmp'),
+            "~compression: must be one of jpeg, png, got 'bmp'",
+        ),
+        (lambda: WorldSimSettings(world='w', cmd_timeout=0), '~cmd_timeout: must be positive, got 0.0'),
+        (
+            lambda: RecorderSettings(world='w', out='o', cpu_period=-1),
+            '~cpu_period: must be positive, got -1.0',
+        ),
+    ],
+)
+def test_the_nodes_settings_check_their_declared_ranges_when_built(build, message):
+    with pytest.raises(ValueError) as error:
+        build()
+    assert str(error.value) == message
+
+
+def test_the_vision_system_source_defaults_to_render_with_a_world_else_topic():
+    assert VisionSystemParams(camera='vs1', world='w.yaml').source == 'render'
+    assert VisionSystemParams(camera='vs1').source == 'topic'
+
+
+@pytest.mark.parametrize(
+    'cls',
+    [ServerSettings, VisionSystemParams, RobotParams, SimCameraParams, WorldSimSettings, RecorderSettings],
+)
+def test_every_node_parameter_is_declared_with_a_meaning(cls):
+    assert all(field.metadata.get('meaning') for field in dataclasses.fields(cls))

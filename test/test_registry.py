@@ -306,3 +306,14 @@ def test_a_new_algorithm_list_is_a_change_and_the_same_one_a_renewal(registry, c
     assert registry.register('/a', square(3, 3), algorithms=['apriltag', 'colour', 'motion']) == 'renewed'
     clock.now += 9.5
     assert registry.expire() == []  # each registration renewed the lease
+
+
+def test_ejected_counts_the_vision_systems_refused_now(registry, clock):
+    assert registry.ejected() == 0
+    for name in ('/a', '/b'):
+        registry.register(name, square(0, 0))
+        for _ in range(3):
+            registry.record_failure(name)
+    assert registry.ejected() == 2
+    clock.now += 10  # the first ejection lasts ejection_time: both end
+    assert registry.ejected() == 0

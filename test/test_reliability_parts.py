@@ -88,6 +88,19 @@ def test_keys_forgotten_after_ttl_lose_nothing():
     assert limiter.take('/a') == pytest.approx(0.5)
 
 
+def test_limited_counts_the_callers_that_would_be_refused_now():
+    clock = ManualClock()
+    limiter = RateLimiter(rate=10, burst=2, clock=clock)
+    limiter.take('/a')
+    limiter.take('/a')  # empty
+    limiter.take('/b')  # one token left
+    assert limiter.limited() == 1
+    clock.now += 0.05  # /a has half a token
+    assert limiter.limited() == 1
+    clock.now += 0.05  # /a has one again
+    assert limiter.limited() == 0
+
+
 @pytest.mark.parametrize(
     'rate, burst, max_keys, message',
     [

@@ -32,8 +32,8 @@ from drvs.ros.sim_camera import (
     compressed_message,
     image_message,
     selected_cameras,
-    transform_message,
 )
+from drvs.ros.tf_frames import transform_message
 from drvs.scene import TINY_RENDERER_SAMPLE, Scene
 from drvs.testing import read_json_lines, wait_for
 from drvs.transforms import matrix_from_quaternion
@@ -298,13 +298,13 @@ def test_cameras_are_a_comma_separated_string_or_a_list(cameras, names):
         ({'rate': 'fast'}, "~rate: expected a number, got 'fast'"),
         ({'jpeg_quality': 0}, '~jpeg_quality: must be 1 to 100, got 0'),
         ({'jpeg_quality': 101}, '~jpeg_quality: must be 1 to 100, got 101'),
-        ({'compression': 'bmp'}, "~compression: must be jpeg or png, got 'bmp'"),
+        ({'compression': 'bmp'}, "~compression: must be one of jpeg, png, got 'bmp'"),
         ({'depth': 'yes'}, "~depth: expected true or false, got 'yes'"),
         (
             {'cameras': 'vs1,vs9'},
             f"~cameras: no vision system named 'vs9' in {WORLD} (known: vs1, vs2, rover)",
         ),
-        ({'cameras': [1, 2]}, '~cameras: expected camera names (a list of strings), got [1, 2]'),
+        ({'cameras': [1, 2]}, '~cameras: expected a string or a list of strings, got [1, 2]'),
         ({'world': None}, '~world: missing'),
         (
             {'world': 'test/worlds/none.yaml'},

@@ -6,7 +6,10 @@ None while unknown, [] to unregister) and whether requests can be served now
 (:meth:`unavailable`).
 
 :class:`RenderSource` is the simulation shortcut: a private PyBullet copy of the
-world kept in step with world_sim's poses, rendered on demand.
+world kept in step with world_sim's poses, rendered on demand. It puts its camera on
+tf as sim_camera does (:func:`drvs.ros.tf_frames.camera_transform`): ``map`` ->
+``<camera>_optical_frame``, on ``/tf_static`` for a fixed camera, on ``/tf`` for one on
+a moving mount each time :meth:`RenderSource.broadcast_pose` is called.
 
 :class:`TopicSource` is any ROS camera: ``image`` (sensor_msgs/Image, any encoding
 cv_bridge converts to rgb8) or ``image/compressed`` (sensor_msgs/CompressedImage),
@@ -19,6 +22,7 @@ is kept (:class:`drvs.frame_feed.FrameFeed`); it is decoded when a request uses 
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -28,6 +32,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from drvs.camera import PinholeCamera
 from drvs.frame_feed import FrameFeed, FrameTimeout
 from drvs.optics import CameraModel
+from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.scene import Frame, Scene
 from drvs.simulation import mount_position
@@ -66,11 +71,37 @@ class RenderSource:
         self.poses = LatestPoses(params.poses_topic)
         self._start_time = 0.0
         self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
+        self.frame_id = optical_frame(config.name)
+        self._broadcaster = None  # tf, made by start(): static for a fixed camera
+
+    @property
+    def moving(self) -> bool:
+        """Whether the camera is on a moving mount (its pose must be broadcast as it goes)."""
+        return bool(self.config.moving)
 
     def start(self) -> None:
+        import tf2_ros
+
         self.scene = Scene(self.world)
         self._start_time = rospy.get_time()
         self.poses.start()
+        if self.moving:
+            self._broadcaster = tf2_ros.TransformBroadcaster()
+            self.broadcast_pose()
+        else:
+            self._broadcaster = tf2_ros.StaticTransformBroadcaster()
+            stamp = rospy.Time.from_sec(self._start_time)
+            self._broadcaster.sendTransform(camera_transform(self.base_camera, self.frame_id, stamp))
+
+    def broadcast_pose(self) -> None:
+        """A moving camera's pose now, on ``/tf`` (a fixed one is on ``/tf_static`` from the start)."""
+        now = rospy.get_time()
+        transform = camera_transform(self.camera_at(now), self.frame_id, rospy.Time.from_sec(now))
+        self._broadcaster.sendTransform(transform)
+
+    def frame_age(self) -> float | None:
+        """None: frames are rendered on demand, so they cannot go stale."""
+        return None
 
     def describe(self) -> str:
         camera = self.base_camera
@@ -327,6 +358,11 @@ class TopicSource:
     def _frame_id(self) -> str:
         received = self.feed.newest()
         return received.image.header.frame_id if received is not None else ''
+
+    def frame_age(self) -> float | None:
+        """Seconds since the newest frame arrived; None before the first."""
+        age = self.feed.age()
+        return age if math.isfinite(age) else None
 
     def unavailable(self) -> str | None:
         """Why requests cannot be served now (a stale feed), or None."""

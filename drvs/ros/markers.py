@@ -10,7 +10,12 @@ Everything is in the ``map`` frame on ``/drvs/markers`` (visualization_msgs/Mark
   lifetime so old detections fade from the view by themselves.
 
 Marker ids are stable per vision system (its position in the sorted registry), so
-RViz replaces a marker in place rather than stacking copies.
+RViz replaces a marker in place rather than stacking copies. A detection's id is the
+outline's index in its callback, in a namespace of its own per vision system and
+algorithm string: the next answer to the same question from the same camera replaces
+it, and no camera's markers replace another's or the fields of view. (RViz's
+``DELETEALL`` clears every namespace of the display, so a change of the registry also
+clears the detections shown at that moment; the next callbacks bring them back.)
 """
 
 from __future__ import annotations
@@ -27,9 +32,21 @@ from visualization_msgs.msg import Marker, MarkerArray
 FRAME = 'map'
 LINE_WIDTH = 0.03
 TEXT_HEIGHT = 0.25
-DETECTION_LIFETIME = 1.0
-"""Seconds a detection outline stays in RViz unless a newer callback replaces it."""
+DETECTION_LIFETIME = 3.0
+"""Seconds a detection outline stays in RViz unless a newer callback replaces it: long enough to
+see the answer to one request asked by hand, short enough that a moving object leaves no trail."""
 FIELD_OF_VIEW_COLOUR = (0.1, 0.5, 1.0, 0.9)
+
+
+def markers_topic(register_service: str) -> str:
+    """The server's marker topic, next to its registration service (a global name).
+
+    A vision system publishes its detections there, beside the server's fields of view.
+
+    >>> markers_topic('/drvs/register_vision_service')
+    '/drvs/markers'
+    """
+    return register_service.rsplit('/', 1)[0] + '/markers'
 
 
 def algorithm_colour(algorithm: str) -> tuple[float, float, float, float]:

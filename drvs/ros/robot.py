@@ -49,54 +49,8 @@ Background loops (control, requester) are guarded (:class:`drvs.guard.LoopGuard`
 an unexpected exception in the control loop fails the node (exit code 1); the
 requester is restarted, and fails the node if it keeps failing.
 
-Parameters (private):
-
-``~world`` (str, required)
-    The world file: colour models, floor size, robot size and speed.
-``~rate`` (float, default 5)
-    Control ticks (and rounds of DRVS requests) per second.
-``~resolution`` (float, default 0.05)
-    Occupancy grid cell size, metres.
-``~robot_radius`` (float, default half the diagonal of the robot's footprint)
-    Inflation of obstacles. Half the diagonal (0.212 m for a 0.3 m square) is the
-    circle that contains the body whatever its heading, so the plan stays safe
-    even if the body turns when it bumps into something.
-``~roi_margin`` (float, default 0.75)
-    Metres added around the robot-station box for obstacle requests.
-``~obstacle_ttl`` (float, default 1.5)
-    Seconds after which a vision system's obstacle outlines are forgotten unless
-    it reports again (a vision system that sees nothing does not answer).
-``~goal_tolerance`` (float, default 0.1)
-    Metres from the station's centre at which the robot stops.
-``~fix_timeout`` (float, default 5)
-    Seconds without a new fix of the robot (or, at start, of the station) after
-    which it stops and fails; also how long DRVS may forward the robot's
-    ``self`` request to no vision system before it fails with "no vision system
-    covers the robot".
-``~unreachable_timeout`` (float, default 5)
-    Seconds the station may stay unreachable (a human may move away) before the
-    robot fails.
-``~speed`` (float, default the world's robot speed)
-    Top speed, m/s.
-``~lookahead`` (float, default 0.2), ``~replan_distance`` (float, default 0.3)
-    Path following: metres to the steering point; map changes this close to the
-    remaining path trigger a repair of the plan.
-``~route_tolerance`` (float, default 0.15)
-    A repaired plan that strays further than this (metres) from the old route is a
-    re-plan (counted in the status, logged); a repair that keeps the route is not.
-``~station_period`` (float, default 2)
-    Seconds between station requests once the station was found.
-``~request_timeout`` (float, default 1)
-    Seconds one DRVS call may take; a call that takes longer counts as failed.
-``~max_request_rate`` (float, default 40)
-    DRVS requests per second, at most, retries included.
-``~retry_cap`` (float, default 1)
-    Longest wait, in seconds before jitter (at most +50 %), between retries of a
-    role that keeps failing or being refused; a longer ``retry_after`` from DRVS
-    is honoured. Keep it well below ``~fix_timeout``.
-``~drvs_service`` (str, default ``/drvs/detect_object_boundary``)
-``~once`` (bool, default false)
-    Exit when done: code 0 at the station, 1 with the reason logged otherwise.
+Parameters: the fields of :class:`RobotParams`, each declared with its default,
+meaning and range; README.md's blind_robot table is generated from them.
 
 Services and topics (``~`` = ``/robot`` when run as ``__name:=robot``):
 
@@ -113,6 +67,12 @@ superseded, obstacles, vision_systems (per role, how many its last accepted requ
 reached), header.stamp (ROS time of the tick); when the robot's ``self`` model is an
 ``apriltag``, also tag_pose (x, y, heading of its newest fix: the heading seen by the
 cameras, not predicted) and tag_stamp (when those frames were taken).
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz): status ``drvs: <node name>``,
+hardware_id the robot (the node's base name; :func:`drvs.health.robot_health`). ERROR
+once failed (the reason); WARN while blocked, without a fix yet, with its newest fix older
+than half ``~fix_timeout``, or when its last ``self`` request reached no vision system;
+OK otherwise, and once arrived. Values: state, reason, fix age (from the frames' stamp),
+``~fix_timeout``, covered.
 """
 
 from __future__ import annotations
@@ -129,8 +89,9 @@ from nav_msgs.msg import OccupancyGrid, Path
 from shapely.geometry import Point, Polygon
 from shapely.ops import unary_union
 
-from drvs.controller import FAILED, FINAL_STATES, Controller, ControllerSettings
+from drvs.controller import ARRIVED, FAILED, FINAL_STATES, Controller, ControllerSettings
 from drvs.guard import RESTART, SHUTDOWN, LoopGuard
+from drvs.health import Health, robot_health
 from drvs.msg import RobotStatus
 from drvs.occupancy import CostGrid, GridSpec, ObstacleMemory
 from drvs.perception import (
@@ -145,9 +106,11 @@ from drvs.perception import (
 )
 from drvs.request_schedule import ACCEPT, RETRY, Request, RequestSchedule
 from drvs.ros.conversions import box_to_msg, polygon_to_points
+from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.messages import robot_status_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
+from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, param
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesResponse,
@@ -168,53 +131,73 @@ OWN_TRAIL = 4.0
 
 
 @dataclass(frozen=True)
-class RobotParams:
-    world: str
-    rate: float = 5.0
-    resolution: float = 0.05
-    robot_radius: float | None = None
-    roi_margin: float = 0.75
-    obstacle_ttl: float = 1.5
-    goal_tolerance: float = 0.1
-    fix_timeout: float = 5.0
-    unreachable_timeout: float = 5.0
-    speed: float | None = None
-    lookahead: float = 0.2
-    replan_distance: float = 0.3
-    route_tolerance: float = 0.15
-    station_period: float = 2.0
-    request_timeout: float = 1.0
-    max_request_rate: float = 40.0
-    retry_cap: float = 1.0
-    drvs_service: str = '/drvs/detect_object_boundary'
-    once: bool = False
-
-    POSITIVE = (
-        'rate',
-        'resolution',
-        'obstacle_ttl',
-        'goal_tolerance',
-        'fix_timeout',
-        'unreachable_timeout',
-        'lookahead',
-        'station_period',
-        'request_timeout',
-        'route_tolerance',
-        'max_request_rate',
-        'retry_cap',
+class RobotParams(Settings):
+    world: str = param(REQUIRED, 'the world file: colour models, floor size, robot size and speed')
+    rate: float = param(
+        5.0, 'control ticks (and rounds of DRVS requests) per second', unit='Hz', check=POSITIVE
     )
-
-    def __post_init__(self):
-        for name in self.POSITIVE + ('speed', 'robot_radius', 'roi_margin', 'replan_distance'):
-            value = getattr(self, name)
-            if value is None and name in ('speed', 'robot_radius'):
-                continue
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                raise ValueError(f'~{name}: expected a number, got {value!r}')
-            if name in self.POSITIVE + ('speed',) and value <= 0:
-                raise ValueError(f'~{name}: must be positive, got {value}')
-            if value < 0:
-                raise ValueError(f'~{name}: must be >= 0, got {value}')
+    resolution: float = param(0.05, 'occupancy grid cell size', unit='m', check=POSITIVE)
+    robot_radius: float | None = param(
+        None,
+        'inflation of obstacles (the default contains the body whatever its heading)',
+        unit='m',
+        check=NON_NEGATIVE,
+        default_text="half the diagonal of the robot's footprint",
+    )
+    roi_margin: float = param(
+        0.75, 'added around the robot-station box for obstacle requests', unit='m', check=NON_NEGATIVE
+    )
+    obstacle_ttl: float = param(
+        1.5,
+        "a vision system's obstacle outlines are forgotten this long after it last reported them",
+        unit='s',
+        check=POSITIVE,
+    )
+    goal_tolerance: float = param(
+        0.1, "distance from the station's centre at which the robot stops", unit='m', check=POSITIVE
+    )
+    fix_timeout: float = param(
+        5.0,
+        'no new fix of the robot (at start, of the station) or no camera covering it for this long: '
+        'the robot stops and fails',
+        unit='s',
+        check=POSITIVE,
+    )
+    unreachable_timeout: float = param(
+        5.0, 'the station may stay unreachable this long before the robot fails', unit='s', check=POSITIVE
+    )
+    speed: float | None = param(
+        None, 'top speed', unit='m/s', check=POSITIVE, default_text="the world's robot speed"
+    )
+    lookahead: float = param(
+        0.2, 'distance along the plan to the point the robot steers to', unit='m', check=POSITIVE
+    )
+    replan_distance: float = param(
+        0.3, 'map changes this close to the remaining plan trigger a repair', unit='m', check=NON_NEGATIVE
+    )
+    route_tolerance: float = param(
+        0.15,
+        'a repaired plan straying further from the old route counts as a re-plan',
+        unit='m',
+        check=POSITIVE,
+    )
+    station_period: float = param(
+        2.0, 'time between station requests once the station was found', unit='s', check=POSITIVE
+    )
+    request_timeout: float = param(
+        1.0, 'limit on one DRVS call; a call that takes longer counts as failed', unit='s', check=POSITIVE
+    )
+    max_request_rate: float = param(
+        40.0, 'DRVS requests per second, retries included', unit='/s', check=POSITIVE
+    )
+    retry_cap: float = param(
+        1.0,
+        'longest wait (before jitter) between retries of a role; keep it well below `~fix_timeout`',
+        unit='s',
+        check=POSITIVE,
+    )
+    drvs_service: str = param('/drvs/detect_object_boundary', "the DRVS server's DetectObjectBoundary")
+    once: bool = param(False, 'exit when done: 0 at the station, 1 otherwise')
 
     @classmethod
     def from_rospy(cls) -> RobotParams:
@@ -275,6 +258,9 @@ class BlindRobot:
         self._last_map_publish = -math.inf
         self._client: ServiceClient | None = None
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stop)
+        self.diagnostics = DiagnosticsPublisher(
+            f'drvs: {rospy.get_name()}', rospy.get_name().rsplit('/', 1)[-1], self.health, guard=self.guard
+        )
 
     @classmethod
     def from_params(cls) -> BlindRobot:
@@ -296,6 +282,8 @@ class BlindRobot:
         rospy.on_shutdown(self._stop.set)
         self.guard.spawn(self._request_loop, 'requester', RESTART)
         self.guard.spawn(self._loop, 'control', SHUTDOWN)
+        self.diagnostics.start()
+        rospy.on_shutdown(self.diagnostics.stop)
         rospy.loginfo(
             'blind robot: radius %.3f m, speed %.2f m/s, asking %s at %.1f Hz',
             self.robot_radius,
@@ -307,11 +295,13 @@ class BlindRobot:
     def wait(self) -> int:
         """With ``~once``: block until done; 0 at the station, 1 on failure. Otherwise until shutdown.
 
-        A background loop that crashed is a failure too (1, with or without ``~once``).
+        A background loop that crashed is a failure too (1, with or without ``~once``); with
+        ``~once``, so is a shutdown (Ctrl-C) before the robot reached its station.
         """
         while not rospy.is_shutdown() and not (self.params.once and self._done.is_set()):
             self._done.wait(0.2)
         self._stop.set()
+        self.diagnostics.stop()
         with self._requests:
             self._requests.notify_all()
         for thread in self.guard.threads:
@@ -325,6 +315,9 @@ class BlindRobot:
         if self.controller is not None and self.controller.state == FAILED:
             rospy.logerr('blind robot failed: %s', self.controller.reason)
             return 1 if self.params.once else 0
+        if self.params.once and (self.controller is None or self.controller.state != ARRIVED):
+            rospy.logwarn('blind robot stopped before it reached the station')
+            return 1
         return 0
 
     def _halt(self) -> None:
@@ -517,6 +510,21 @@ class BlindRobot:
             self._publish_map(now)
 
     # -- publications ----------------------------------------------------------------------
+    def health(self) -> Health:
+        """The robot's health now, for ``/diagnostics``."""
+        now = rospy.get_time()
+        controller = self.controller
+        with self._lock:
+            fix = self.perception.fix('self')
+            covered = self._vision_systems.get('self', 0) > 0
+        return robot_health(
+            state=controller.state,
+            reason=controller.reason,
+            fix_age=None if fix is None else max(now - fix.stamp, 0.0),
+            fix_timeout=self.params.fix_timeout,
+            coverage=covered,
+        )
+
     def _publish(self, now: float) -> None:
         controller = self.controller
         status = controller.status()

@@ -50,30 +50,17 @@ once per ``~registry_period``. With each, ``~markers`` (visualization_msgs/Marke
 latched, frame ``map``; :mod:`drvs.ros.markers`): a DELETEALL, then every registered
 field of view's outline and name, for RViz.
 
-Parameters:
+Topic ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz): status ``drvs: <node
+name>``, hardware_id the host (:func:`drvs.health.server_health`). ERROR when the
+forwarding pool is full (requests refused ``BUSY``); WARN when no vision system is
+registered, the pool is more than 80 % full, requests were refused ``BUSY`` or
+``RATE_LIMITED`` in the last second, or a vision system is ejected; OK otherwise.
+Values: registered vision systems, pending and maximum forwards, rate-limited callers
+(those over their share now), ejected vision systems, and refusals per status in the
+last period and since start.
 
-- ``~lease`` (s, default 10): a registration lasts this long unless renewed.
-- ``~max_failures`` (default 3): consecutive failed forwards that remove a vision
-  system; renewals do not reset the count (a move or a new algorithm list does).
-- ``~ejection_time`` (s, default 10): a removed vision system's registrations are
-  refused for this long times the number of its ejections ...
-- ``~max_ejection_time`` (s, default 300): ... but never longer than this.
-- ``~forward_timeout`` (s, default 2): limit on one forward (connect, send, reply).
-- ``~workers`` (default 8): forwarding threads; a hung vision system holds at most one.
-- ``~max_pending`` (default 1000): forwards queued or running in all; a request
-  that would pass it is refused with ``BUSY`` instead of queued.
-- ``~max_pending_per_vision_system`` (default 10): a vision system with this
-  many forwards waiting is skipped by new requests (not counted in ``vision_systems``).
-- ``~busy_retry_after`` (s, default 0.5): ``retry_after`` of a ``BUSY`` refusal.
-- ``~unavailable_retry_after`` (s, default 1): ``retry_after`` when the master did not answer.
-- ``~max_requests_per_s`` (default 50), ``~burst`` (default 100): the per-caller rate limit.
-- ``~check_timeout`` (s, default 1): limit on each master lookup / service probe
-  made to validate a registration or a callback service.
-- ``~callback_cache`` (s, default 5): how long a verified callback service is
-  trusted before it is checked again.
-- ``~callback_memory`` (s, default 60): how long a verified callback service that
-  the master stops listing counts as temporarily ``UNAVAILABLE`` rather than ``INVALID``.
-- ``~registry_period`` (s, default 0.2): minimum time between two ``~registry`` messages.
+Parameters: the fields of :class:`ServerSettings`, each declared with its default,
+meaning and range; README.md's drvs_server table is generated from them.
 
 Background loops (lease expiry, registry publisher) are guarded
 (:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
@@ -85,6 +72,7 @@ request; debug per forward.
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 import traceback
@@ -96,8 +84,10 @@ import rospy
 from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
+from drvs.counters import PeriodCounts
 from drvs.dispatch import Busy, Dispatcher
 from drvs.guard import RESTART, LoopGuard
+from drvs.health import Health, server_health
 from drvs.msg import Registry as RegistryMsg
 from drvs.rate_limit import RateLimiter
 from drvs.registry import (
@@ -111,6 +101,7 @@ from drvs.registry import (
     algorithm_names,
 )
 from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
+from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.markers import registry_markers
 from drvs.ros.messages import registry_to_msg
 from drvs.ros.params import read_params
@@ -122,6 +113,7 @@ from drvs.ros.service_client import (
     UnknownService,
     probe_service,
 )
+from drvs.settings import NON_NEGATIVE, POSITIVE, Settings, at_least, param
 from drvs.srv import (
     CallbackCoordinates,
     DetectObjectBoundary,
@@ -146,45 +138,61 @@ MAX_CALLBACKS_REMEMBERED = 10_000
 
 
 @dataclass(frozen=True)
-class ServerSettings:
-    lease: float = 10.0
-    max_failures: int = 3
-    ejection_time: float = 10.0
-    max_ejection_time: float = 300.0
-    forward_timeout: float = 2.0
-    workers: int = 8
-    max_pending: int = 1000
-    max_pending_per_vision_system: int = 10
-    busy_retry_after: float = 0.5
-    unavailable_retry_after: float = 1.0
-    max_requests_per_s: float = 50.0
-    burst: int = 100
-    check_timeout: float = 1.0
-    callback_cache: float = 5.0
-    callback_memory: float = 60.0
-    registry_period: float = 0.2
+class ServerSettings(Settings):
+    lease: float = param(
+        10.0, 'a registration expires unless renewed within this time', unit='s', check=POSITIVE
+    )
+    max_failures: int = param(
+        3,
+        'failed forwards in a row that remove (and eject) a vision system; renewals do not reset it',
+        check=at_least(1),
+    )
+    ejection_time: float = param(
+        10.0, 'an ejected vision system is refused this long × its ejections', unit='s', check=NON_NEGATIVE
+    )
+    max_ejection_time: float = param(
+        300.0, 'the longest ejection; at least `~ejection_time`', unit='s', check=NON_NEGATIVE
+    )
+    forward_timeout: float = param(
+        2.0, 'limit on one forward (connect, send, reply)', unit='s', check=POSITIVE
+    )
+    workers: int = param(8, 'forwarding threads (a hung vision system holds at most one)', check=at_least(1))
+    max_pending: int = param(
+        1000, 'forwards queued or running; beyond it requests are refused `BUSY`', check=at_least(1)
+    )
+    max_pending_per_vision_system: int = param(
+        10, 'a vision system this far behind is skipped by new requests', check=at_least(1)
+    )
+    busy_retry_after: float = param(0.5, '`retry_after` of a `BUSY` refusal', unit='s', check=POSITIVE)
+    unavailable_retry_after: float = param(
+        1.0, '`retry_after` when the master did not answer', unit='s', check=POSITIVE
+    )
+    max_requests_per_s: float = param(
+        50.0, 'requests per second per caller id, on both services', unit='/s', check=POSITIVE
+    )
+    burst: int = param(100, 'requests a caller may send at once before the rate applies', check=at_least(1))
+    check_timeout: float = param(
+        1.0, 'limit on each master lookup / probe during validation', unit='s', check=POSITIVE
+    )
+    callback_cache: float = param(
+        5.0, 'how long a verified callback service is trusted', unit='s', check=NON_NEGATIVE
+    )
+    callback_memory: float = param(
+        60.0,
+        'a verified callback service the master stops listing is `UNAVAILABLE`, not `INVALID`, this long',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    registry_period: float = param(
+        0.2, 'minimum time between two `~registry` messages', unit='s', check=NON_NEGATIVE
+    )
 
     def __post_init__(self):
-        for field in (
-            'lease',
-            'forward_timeout',
-            'check_timeout',
-            'max_requests_per_s',
-            'busy_retry_after',
-            'unavailable_retry_after',
-        ):
-            if not getattr(self, field) > 0:
-                raise ValueError(f'~{field}: must be positive, got {getattr(self, field)}')
-        for field in ('max_failures', 'workers', 'max_pending', 'max_pending_per_vision_system', 'burst'):
-            if getattr(self, field) < 1:
-                raise ValueError(f'~{field}: must be at least 1, got {getattr(self, field)}')
-        for field in ('callback_cache', 'callback_memory', 'registry_period', 'ejection_time'):
-            if not getattr(self, field) >= 0:
-                raise ValueError(f'~{field}: must not be negative, got {getattr(self, field)}')
+        super().__post_init__()
         if not self.max_ejection_time >= self.ejection_time:
             raise ValueError(
-                f'~max_ejection_time: must be at least ~ejection_time ({self.ejection_time}), '
-                f'got {self.max_ejection_time}'
+                f'~max_ejection_time: must be at least ~ejection_time ({self.ejection_time!r}), '
+                f'got {self.max_ejection_time!r}'
             )
 
     @classmethod
@@ -227,6 +235,10 @@ class DrvsServer:
         self._dirty = True
         self._registry_publisher = None
         self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
+        self.refusals = PeriodCounts()  # refusals by status name, for the health report
+        self.diagnostics = DiagnosticsPublisher(
+            f'drvs: {rospy.get_name()}', socket.gethostname(), self.health, guard=self.guard
+        )
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -238,6 +250,7 @@ class DrvsServer:
         self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
         rospy.Service('~register_vision_service', RegisterVisionService, self.handle_register)
         rospy.Service('~detect_object_boundary', DetectObjectBoundary, self.handle_detect)
+        self.diagnostics.start()
         rospy.loginfo(
             'DRVS server ready: lease %g s, max_failures %d, forward_timeout %g s, %d workers, '
             'rate limit %g/s (burst %d) per caller; algorithms checked in full: %s',
@@ -252,6 +265,7 @@ class DrvsServer:
 
     def stop(self) -> None:
         self._stopping.set()
+        self.diagnostics.stop()
         with self._changed:
             self._changed.notify_all()
         self.dispatcher.stop(timeout=self.settings.forward_timeout + 1.0)
@@ -273,6 +287,7 @@ class DrvsServer:
         )
 
     def _refuse_register(self, refusal: Refusal) -> RegisterVisionServiceResponse:
+        self.refusals.add(name(refusal.status))
         log = rospy.logwarn if refusal.status == INVALID else rospy.loginfo
         log('registration refused (%s): %s', name(refusal.status), refusal.message)
         return RegisterVisionServiceResponse(
@@ -280,6 +295,7 @@ class DrvsServer:
         )
 
     def _refuse_detect(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
+        self.refusals.add(name(refusal.status))
         rospy.loginfo(
             'request %r from %s refused (%s): %s',
             request.request_id,
@@ -605,6 +621,19 @@ class DrvsServer:
                 )
             )
             stop.wait(self.settings.registry_period)
+
+    def health(self) -> Health:
+        """The server's health now, for ``/diagnostics``; the refusals counted since the last call."""
+        recent = self.refusals.take_period()  # first: the totals then include every recent one
+        return server_health(
+            registered=len(self.registry),
+            pending_forwards=self.dispatcher.pending,
+            max_pending=self.settings.max_pending,
+            refusals_by_status=self.refusals.totals(),
+            refusals_recent=recent,
+            rate_limited_callers=self.rate_limiter.limited(),
+            ejected=self.registry.ejected(),
+        )
 
     def registry_msg(self) -> RegistryMsg:
         """The registry now, with each lease's expiry in ROS time."""

@@ -19,22 +19,8 @@ arrived. A camera publishes a frame only when that stamp differs from its last
 one: with world_sim stopped, a frame with an old stamp again would only repeat the
 last (and tf would warn of a repeated transform).
 
-Parameters (private):
-
-``~world`` (str, required)
-    The world file.
-``~cameras`` (str or list, default: every vision system of the world)
-    The cameras to publish, comma-separated (``vs1,vs2``) or a YAML list (``[vs1, vs2]``).
-``~rate`` (float, default 10)
-    Frames per second per subscribed camera.
-``~depth`` (bool, default true)
-    Publish depth images.
-``~compression`` (str, default ``jpeg``)
-    ``jpeg`` or ``png``: the format of ``image_raw/compressed``.
-``~jpeg_quality`` (int, default 90)
-    1 to 100.
-``~poses_topic`` (str, default ``/world_sim/poses``)
-    world_sim's pose topic.
+Parameters: the fields of :class:`SimCameraParams`, each declared with its default,
+meaning and range; README.md's sim_camera table is generated from them.
 
 Topics, for each camera NAME (relative names: ``/NAME/...`` in the root namespace):
 
@@ -54,7 +40,7 @@ Topics, for each camera NAME (relative names: ``/NAME/...`` in the root namespac
 tf frames:
 
 ``map`` -> ``NAME_optical_frame``
-    The camera's optical frame (z forward, x right, y down; :func:`drvs.optics.optical_pose_of`),
+    The camera's optical frame (z forward, x right, y down; :func:`drvs.ros.tf_frames.camera_transform`),
     the ``frame_id`` of its images. A fixed camera's on ``/tf_static`` at start; one on a
     moving mount (``waypoints`` and ``speed``) on ``/tf`` with each image's stamp, sent
     before the image. A mount starts its waypoint loop when the node starts (as a vision
@@ -79,37 +65,34 @@ from std_msgs.msg import Header
 from drvs.camera import PinholeCamera
 from drvs.guard import RESTART, LoopGuard
 from drvs.lens import Lens
-from drvs.optics import intrinsics_of, optical_pose_of
+from drvs.optics import intrinsics_of
 from drvs.ros.params import read_params
+from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
+from drvs.settings import POSITIVE, REQUIRED, Settings, between, one_of, param
 from drvs.simulation import mount_position
-from drvs.transforms import quaternion_from_matrix
 from drvs.world import Camera, load_world
 
-MAP_FRAME = 'map'
 COMPRESSIONS = ('jpeg', 'png')
 SLOW_LOG_PERIOD = 10.0
 """Seconds between debug lines saying that rendering falls behind ``~rate``."""
 
 
 @dataclass(frozen=True)
-class SimCameraParams:
-    world: str
-    cameras: str = ''
-    rate: float = 10.0
-    depth: bool = True
-    compression: str = 'jpeg'
-    jpeg_quality: int = 90
-    poses_topic: str = '/world_sim/poses'
-
-    def __post_init__(self):
-        if not self.rate > 0:
-            raise ValueError(f'~rate: must be positive, got {self.rate}')
-        if self.compression not in COMPRESSIONS:
-            raise ValueError(f'~compression: must be jpeg or png, got {self.compression!r}')
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ValueError(f'~jpeg_quality: must be 1 to 100, got {self.jpeg_quality}')
+class SimCameraParams(Settings):
+    world: str = param(REQUIRED, 'the world file')
+    cameras: str = param(
+        '',
+        'the cameras to publish, comma-separated (`vs1,vs2`) or a YAML list (`[vs1, vs2]`)',
+        default_text='every vision system of the world',
+        separator=',',
+    )
+    rate: float = param(10.0, 'frames per second per subscribed camera', unit='Hz', check=POSITIVE)
+    depth: bool = param(True, 'publish depth images')
+    compression: str = param('jpeg', 'the format of `image_raw/compressed`', check=one_of(*COMPRESSIONS))
+    jpeg_quality: int = param(90, 'JPEG quality of `image_raw/compressed`', check=between(1, 100))
+    poses_topic: str = param('/world_sim/poses', "world_sim's pose topic")
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -117,18 +100,8 @@ class SimCameraParams:
         return tuple(name.strip() for name in self.cameras.split(',') if name.strip())
 
     @classmethod
-    def from_rosparam(cls, get_param=None) -> SimCameraParams:
-        """Every field from ``~name`` (``get_param``: rospy.get_param); ``~cameras`` may be a list."""
-        get_param = get_param or rospy.get_param
-
-        def get(name, default):
-            value = get_param(name, default)
-            if name == '~cameras' and isinstance(value, list):
-                if not all(isinstance(item, str) for item in value):
-                    raise ValueError(f'~cameras: expected camera names (a list of strings), got {value!r}')
-                return ','.join(value)
-            return value
-
+    def from_rosparam(cls, get=None) -> SimCameraParams:
+        """Every field from ``~name`` (``get``: rospy.get_param); ``~cameras`` may be a list."""
         return read_params(cls, get=get)
 
 
@@ -193,19 +166,6 @@ def camera_info_message(K: np.ndarray, D, width: int, height: int, header: Heade
     )
 
 
-def transform_message(rotation, translation, parent: str, child: str, stamp: rospy.Time) -> TransformStamped:
-    """``child``'s pose in ``parent`` (rotation: 3x3, columns are child's axes in parent)."""
-    message = TransformStamped()
-    message.header.stamp = stamp
-    message.header.frame_id = parent
-    message.child_frame_id = child
-    t = message.transform.translation
-    t.x, t.y, t.z = (float(v) for v in translation)
-    q = message.transform.rotation
-    q.x, q.y, q.z, q.w = (float(v) for v in quaternion_from_matrix(rotation))
-    return message
-
-
 # -- the node ----------------------------------------------------------------------------------
 class Feed:
     """One camera: its optics (ideal, or a lens over a padded canvas), publishers and last stamp."""
@@ -213,7 +173,7 @@ class Feed:
     def __init__(self, config: Camera):
         self.config = config
         self.camera = PinholeCamera.from_config(config)
-        self.frame_id = f'{config.name}_optical_frame'
+        self.frame_id = optical_frame(config.name)
         if config.distortion:
             self.lens: Lens | None = Lens(self.camera, tuple(config.distortion), TINY_RENDERER_SAMPLE)
             self.canvas = self.lens.canvas
@@ -395,5 +355,4 @@ class SimCameraNode:
 
     @staticmethod
     def _transform(feed: Feed, camera: PinholeCamera, stamp: rospy.Time) -> TransformStamped:
-        rotation, translation = optical_pose_of(camera)
-        return transform_message(rotation, translation, MAP_FRAME, feed.frame_id, stamp)
+        return camera_transform(camera, feed.frame_id, stamp)

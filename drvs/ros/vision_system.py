@@ -54,68 +54,8 @@ Background loops (registration, workers, debug view) are guarded
 traceback and the loop restarts; one that keeps failing shuts the node down
 (exit code 1).
 
-Parameters (private):
-
-``~source`` (str, default ``render`` with ``~world``, else ``topic``)
-    Where frames come from: ``render`` or ``topic``.
-``~world`` (str, required for ``render``)
-    The world file.
-``~camera`` (str, default: the node's name)
-    Which ``vision_systems`` entry of the world this node is (``render``).
-``~compressed`` (bool, default false)
-    ``topic``: subscribe to ``image/compressed`` instead of ``image``.
-``~depth`` (bool, default false)
-    ``topic``: lift outlines with the aligned depth image ``depth``.
-``~max_range`` (float, default 30)
-    ``topic``: metres from the camera beyond which the floor is not part of the field
-    of view (rays towards the horizon).
-``~frame_timeout`` (float, default 1.0)
-    ``topic``: seconds a request waits for a new frame when the newest is too old.
-``~stale_after`` (float, default 3.0)
-    ``topic``: seconds without frames after which the camera unregisters.
-``~tf_timeout`` (float, default 0.5)
-    ``topic``: seconds to wait for the camera's transform at an image's stamp.
-``~map_frame`` (str, default ``map``)
-    ``topic``: the frame outlines and fields of view are given in.
-``~tag_height`` (float, default 0)
-    Metres above the floor of the plane AprilTags lie on, unless the request says
-    (``apriltag:FAMILY:IDS:h=H``); with a world file, the tags on its robot and station
-    are known to lie on top of them.
-``~motion_rate`` (float, default 5)
-    Frames per second fed to algorithms with memory (``motion``) while they are in use.
-``~motion_window`` (float, default 5)
-    Seconds after the last motion request during which the stream keeps being fed.
-``~min_area`` (float, default 20)
-    Smallest object, in pixels.
-``~epsilon`` (float, default 1.0)
-    Outline simplification tolerance, in pixels (Douglas-Peucker).
-``~max_frame_age`` (float, default 0.1)
-    Requests arriving within this many seconds of the last capture reuse it (``render``);
-    the newest frame is used if its stamp is at most this old (``topic``).
-``~callback_timeout`` (float, default 2.0)
-    Seconds a callback to a robot may take; a failed or hung one is logged and dropped.
-``~max_callback_clients`` (int, default 64)
-    Open connections to robots' callback services kept; the least recently used
-    beyond this is closed.
-``~callback_idle`` (float, default 30)
-    Seconds after which an unused connection to a callback service is closed.
-``~workers`` (int, default 2)
-    Threads processing requests.
-``~queue_size`` (int, default 32)
-    Requests waiting for a worker; beyond it requests are refused with ``BUSY``.
-``~register_service`` (str, default ``/drvs/register_vision_service``)
-    The DRVS server's RegisterVisionService.
-``~register_timeout`` (float, default 2.0)
-    Seconds a registration call may take.
-``~retry_period`` (float, default 1.0)
-    Longest wait between registration attempts beyond the server's ``retry_after``.
-``~move_threshold`` (float, default 0.01)
-    Metres a field-of-view vertex must move before the new field of view is registered.
-``~poses_topic`` (str, default ``/world_sim/poses``)
-    world_sim's pose topic.
-``~debug_rate`` (float, default 1.0)
-    Views per second rendered for ``~debug_image`` while someone subscribes (0: only
-    after requests).
+Parameters: the fields of :class:`VisionSystemParams`, each declared with its default,
+meaning and range; README.md's vision_system table is generated from them.
 
 Topics and services:
 
@@ -130,6 +70,23 @@ Topics and services:
     distinct ones, the rest under ``other``); republished when they change.
 ``~debug_image`` (sensor_msgs/Image, rgb8)
     The view with the detections drawn; rendered only while subscribed.
+``/drvs/markers`` (visualization_msgs/MarkerArray, frame ``map``)
+    With every callback sent, its outlines for RViz (:func:`drvs.ros.markers.detection_markers`:
+    namespace ``detections/<service>/<algorithm>``, coloured by algorithm NAME, fading after
+    ``DETECTION_LIFETIME`` seconds); published only while someone subscribes. The topic is
+    the server's, next to ``~register_service``, where it publishes the fields of view.
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz)
+    Status ``drvs: <node name>``, hardware_id the camera's name
+    (:func:`drvs.health.vision_system_health`): ERROR for a stale topic feed (or no frame
+    yet) and for a registration refused ``INVALID``; WARN when not registered (why: the
+    server's refusal or the failed call), the request queue nearly full, or callbacks
+    failed in the last second; OK otherwise. Values: registered, source, frame age,
+    ``~stale_after``, queue length and size, callbacks and failures in the last period,
+    the last registration refusal and error.
+``/tf_static`` or ``/tf`` (``render`` only): ``map`` -> ``<camera>_optical_frame``
+    The camera's optical frame (z forward, x right, y down), as sim_camera publishes it:
+    on ``/tf_static`` for a fixed camera, on ``/tf`` at ``POSE_RATE`` Hz for one on a
+    moving mount. (With ``topic``, the camera's driver puts it on tf.)
 """
 
 from __future__ import annotations
@@ -144,10 +101,13 @@ from dataclasses import dataclass
 import numpy as np
 import rospy
 from sensor_msgs.msg import Image
+from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, load_algorithms
 from drvs.client_cache import ClosingCache
+from drvs.counters import PeriodCounts
 from drvs.guard import RESTART, LoopGuard
+from drvs.health import Health, vision_system_health
 from drvs.msg import VisionSystemStats
 from drvs.retry import retry_delay
 from drvs.ros.conversions import (
@@ -156,11 +116,14 @@ from drvs.ros.conversions import (
     points_to_polygon,
     refusal_to_detect_response,
 )
+from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.frame_sources import FrameUnavailable, RenderSource, TopicSource
+from drvs.ros.markers import detection_markers, markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame
+from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, at_least, one_of, param
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -181,67 +144,125 @@ DEFAULT_LEASE = 10.0
 MAX_ALGORITHMS_COUNTED = 64
 """Distinct algorithm strings counted in ``~stats``; callers choose them, so the count is capped."""
 
+POSE_RATE = 10.0
+"""Times per second a camera on a moving mount (``render``) puts its pose on tf."""
+
 
 SOURCES = ('render', 'topic')
 
 
 @dataclass(frozen=True)
-class VisionSystemParams:
-    camera: str
-    world: str = ''
-    source: str = ''
-    compressed: bool = False
-    depth: bool = False
-    max_range: float = 30.0
-    frame_timeout: float = 1.0
-    stale_after: float = 3.0
-    tf_timeout: float = 0.5
-    map_frame: str = 'map'
-    tag_height: float = 0.0
-    motion_rate: float = 5.0
-    motion_window: float = 5.0
-    min_area: float = 20.0
-    epsilon: float = 1.0
-    max_frame_age: float = 0.1
-    callback_timeout: float = 2.0
-    max_callback_clients: int = 64
-    callback_idle: float = 30.0
-    workers: int = 2
-    queue_size: int = 32
-    register_service: str = '/drvs/register_vision_service'
-    register_timeout: float = 2.0
-    retry_period: float = 1.0
-    move_threshold: float = 0.01
-    poses_topic: str = '/world_sim/poses'
-    debug_rate: float = 1.0
+class VisionSystemParams(Settings):
+    camera: str = param(
+        REQUIRED,
+        'which `vision_systems` entry of the world this node is (`render`)',
+        default_text="the node's name",
+    )
+    world: str = param('', 'the world file (required with `~source` `render`)', default_text='none')
+    source: str = param(
+        '',
+        'where frames come from: rendered from the world, or a camera topic',
+        check=one_of(*SOURCES),
+        default_text='`render` with `~world`, else `topic`',
+    )
+    compressed: bool = param(False, '`topic`: subscribe to `image/compressed` instead of `image`')
+    depth: bool = param(False, '`topic`: lift outlines with the aligned depth image `depth`')
+    max_range: float = param(
+        30.0,
+        '`topic`: distance from the camera beyond which the floor is not part of the field of view',
+        unit='m',
+        check=POSITIVE,
+    )
+    frame_timeout: float = param(
+        1.0,
+        '`topic`: how long a request waits for a new frame when the newest is too old',
+        unit='s',
+        check=POSITIVE,
+    )
+    stale_after: float = param(
+        3.0, '`topic`: time without frames after which the camera unregisters', unit='s', check=POSITIVE
+    )
+    tf_timeout: float = param(
+        0.5,
+        "`topic`: how long to wait for the camera's transform at an image's stamp",
+        unit='s',
+        check=POSITIVE,
+    )
+    map_frame: str = param('map', '`topic`: the frame outlines and fields of view are given in')
+    tag_height: float = param(
+        0.0,
+        'height above the floor of the plane AprilTags lie on, unless the request (`h=H`) or the world says',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
+    motion_rate: float = param(
+        5.0,
+        'frames fed to algorithms with memory (`motion`) while they are in use',
+        unit='Hz',
+        check=POSITIVE,
+    )
+    motion_window: float = param(
+        5.0,
+        'time after the last `motion` request during which frames keep being fed',
+        unit='s',
+        check=POSITIVE,
+    )
+    min_area: float = param(20.0, 'smallest object', unit='px', check=NON_NEGATIVE)
+    epsilon: float = param(
+        1.0, 'outline simplification tolerance (Douglas-Peucker)', unit='px', check=NON_NEGATIVE
+    )
+    max_frame_age: float = param(
+        0.1,
+        'a request reuses the newest frame if it is at most this old',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    callback_timeout: float = param(
+        2.0,
+        'limit on one callback to a robot; a failed or hung one is logged and dropped',
+        unit='s',
+        check=POSITIVE,
+    )
+    max_callback_clients: int = param(
+        64,
+        "connections to robots' callback services kept, the least recently used closed beyond it",
+        check=at_least(1),
+    )
+    callback_idle: float = param(
+        30.0, 'an unused connection to a callback service is closed after this', unit='s', check=POSITIVE
+    )
+    workers: int = param(2, 'threads processing requests', check=at_least(1))
+    queue_size: int = param(
+        32, 'requests waiting for a worker; beyond it requests are refused `BUSY`', check=at_least(1)
+    )
+    register_service: str = param('/drvs/register_vision_service', "the DRVS server's RegisterVisionService")
+    register_timeout: float = param(2.0, 'limit on one registration call', unit='s', check=POSITIVE)
+    retry_period: float = param(
+        1.0,
+        "longest wait between registration attempts beyond the server's `retry_after`",
+        unit='s',
+        check=POSITIVE,
+    )
+    move_threshold: float = param(
+        0.01,
+        'how far a field-of-view vertex moves before the new field of view is registered',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
+    poses_topic: str = param('/world_sim/poses', "world_sim's pose topic (`render`)")
+    debug_rate: float = param(
+        1.0,
+        '`~debug_image` views per second while subscribed (0: only after requests)',
+        unit='Hz',
+        check=NON_NEGATIVE,
+    )
 
     def __post_init__(self):
         if not self.source:  # frozen: the resolved default is set once, here
             object.__setattr__(self, 'source', 'render' if self.world else 'topic')
-        if self.source not in SOURCES:
-            raise ValueError(f'~source: must be one of {", ".join(SOURCES)}, got {self.source!r}')
+        super().__post_init__()
         if self.source == 'render' and not self.world:
             raise ValueError('~world: required with ~source render (or use ~source topic and a camera topic)')
-        for name in (
-            'callback_timeout',
-            'callback_idle',
-            'register_timeout',
-            'retry_period',
-            'max_range',
-            'frame_timeout',
-            'stale_after',
-            'tf_timeout',
-            'motion_rate',
-            'motion_window',
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f'~{name}: must be positive, got {getattr(self, name)}')
-        for name in ('min_area', 'epsilon', 'max_frame_age', 'move_threshold', 'debug_rate', 'tag_height'):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f'~{name}: must be zero or positive, got {getattr(self, name)}')
-        for name in ('workers', 'queue_size', 'max_callback_clients'):
-            if getattr(self, name) < 1:
-                raise ValueError(f'~{name}: must be at least 1, got {getattr(self, name)}')
 
     @classmethod
     def from_rosparam(cls) -> VisionSystemParams:
@@ -287,11 +308,22 @@ class VisionSystemNode:
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._registered: list | None = None
         self.lease: float | None = None  # granted by the server at the last registration
+        self._callbacks_period = PeriodCounts()  # 'attempted' and 'failed' callbacks, for the health
+        self._registration_lock = threading.Lock()  # guards the three fields below
+        self._registered_until: float | None = None  # time.monotonic() when the granted lease ends
+        self._registration_status = ''  # status name of the last refused registration
+        self._registration_error = ''  # why the last registration failed, or why there is none
+        self.diagnostics = DiagnosticsPublisher(
+            f'drvs: {rospy.get_name()}', params.camera, self.health, guard=self.guard
+        )
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
         self.stats_pub = rospy.Publisher('~stats', VisionSystemStats, queue_size=1, latch=True)
         self.debug_pub = rospy.Publisher('~debug_image', Image, queue_size=1)
+        self.markers_pub = rospy.Publisher(
+            markers_topic(rospy.resolve_name(self.params.register_service)), MarkerArray, queue_size=10
+        )
         self.source.start()
         self._register_client = ServiceClient(
             self.params.register_service, RegisterVisionService, timeout=self.params.register_timeout
@@ -305,8 +337,11 @@ class VisionSystemNode:
             self.guard.spawn(self._debug_loop, 'debug', RESTART)
         if any(a.streaming for a in self.algorithms.by_name.values()):
             self.guard.spawn(self._stream_loop, 'stream', RESTART)
+        if isinstance(self.source, RenderSource) and self.source.moving:
+            self.guard.spawn(self._pose_loop, 'camera pose', RESTART)
         rospy.on_shutdown(self.stop)
         self._publish_stats()
+        self.diagnostics.start()
         rospy.loginfo('%s: %s; serving %s', rospy.get_name(), self.source.describe(), self.service_name)
 
     def stop(self) -> None:
@@ -314,6 +349,7 @@ class VisionSystemNode:
         if self._stopping.is_set():
             return
         self._stopping.set()
+        self.diagnostics.stop()
         for _ in range(self.params.workers):
             try:
                 self._jobs.put_nowait(None)
@@ -433,13 +469,20 @@ class VisionSystemNode:
         buffer = io.BytesIO()
         request.serialize(buffer)
         client = self._callback_clients.get(job.callback_service)
+        self._callbacks_period.add('attempted')
         try:
             client.call(request)
         except ServiceCallError as error:
             self._count(callback_failures=1)
+            self._callbacks_period.add('failed')
             rospy.logwarn('%s: callback for request %r dropped: %s', rospy.get_name(), job.request_id, error)
-            return
-        self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(found))
+        else:
+            self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(found))
+        if self.markers_pub.get_num_connections() > 0:  # after the callback: the robot waits, RViz can
+            outlines = [outline for outline, _ in found]
+            self.markers_pub.publish(
+                detection_markers(self.service_name, job.algorithm_text, outlines, request.stamp)
+            )
 
     # -- registration --------------------------------------------------------------------------
     def _registration_loop(self) -> None:
@@ -450,6 +493,8 @@ class VisionSystemNode:
             self._callback_clients.expire()  # close idle callback connections even when no request comes
             footprint = self.source.footprint()
             if footprint is None or (not footprint and not self._registered):
+                if not self._registered:
+                    self._note_lease(None, _why_not_registering(footprint))
                 continue  # not known yet, or nothing to unregister
             now = time.monotonic()
             moved = self._registered is None or _moved(
@@ -486,8 +531,10 @@ class VisionSystemNode:
             response = self._register_client.call(request)
         except ServiceCallError as error:
             rospy.logwarn_throttle(10.0, '%s: waiting for the DRVS server (%s)', rospy.get_name(), error)
+            self._note_refusal('', str(error))
             return 0.0
         if response.status != ACCEPTED:
+            self._note_refusal(status_name(response.status), response.message)
             if is_temporary(response.status):
                 rospy.logwarn_throttle(
                     10.0,
@@ -504,20 +551,55 @@ class VisionSystemNode:
         if response.lease > 0:
             self.lease = float(response.lease)
         if what == 'unregister':
+            self._note_lease(None, _why_not_registering(footprint))
             rospy.loginfo('%s: unregistered %s', rospy.get_name(), self.service_name)
-        elif what != 'renew':
-            rospy.loginfo(
-                '%s: %s %s with field of view %s (lease %s s)',
-                rospy.get_name(),
-                what,
-                self.service_name,
-                [(round(x, 3), round(y, 3)) for x, y in footprint],
-                f'{self.lease:g}' if self.lease else '-',
-            )
+        else:
+            self._note_lease(time.monotonic() + (self.lease or DEFAULT_LEASE))
+            if what != 'renew':
+                rospy.loginfo(
+                    '%s: %s %s with field of view %s (lease %s s)',
+                    rospy.get_name(),
+                    what,
+                    self.service_name,
+                    [(round(x, 3), round(y, 3)) for x, y in footprint],
+                    f'{self.lease:g}' if self.lease else '-',
+                )
         self._count(registrations=1)
         return None
 
+    def _note_lease(self, until: float | None, why_not: str = '') -> None:
+        """For the health report: a lease held until ``until`` (time.monotonic()), or none because
+        ``why_not``."""
+        with self._registration_lock:
+            self._registered_until = until
+            self._registration_status, self._registration_error = '', why_not
+
+    def _note_refusal(self, status: str, error: str) -> None:
+        """For the health report: a registration refused with ``status`` ('' if the server did not
+        answer) because ``error``; a lease granted before runs its course."""
+        with self._registration_lock:
+            self._registration_status, self._registration_error = status, error
+
     # -- introspection -------------------------------------------------------------------------
+    def health(self) -> Health:
+        """The node's health now, for ``/diagnostics``; the callbacks counted since the last call."""
+        callbacks = self._callbacks_period.take_period()
+        with self._registration_lock:
+            until = self._registered_until
+            status, error = self._registration_status, self._registration_error
+        return vision_system_health(
+            registered=until is not None and time.monotonic() < until,
+            source=self.params.source,
+            frame_age=self.source.frame_age(),
+            stale_after=self.params.stale_after,
+            queue_length=self._jobs.qsize(),
+            queue_size=self.params.queue_size,
+            callback_failures_recent=callbacks.get('failed', 0),
+            callbacks_recent=callbacks.get('attempted', 0),
+            registration_status=status,
+            registration_error=error,
+        )
+
     def _count(self, **increments) -> None:
         with self._stats_lock:
             for key, value in increments.items():
@@ -534,6 +616,11 @@ class VisionSystemNode:
         with self._stats_lock:
             message = stats_to_msg(self.stats, self.requests_by_algorithm, rospy.get_time())
         self.stats_pub.publish(message)
+
+    def _pose_loop(self) -> None:
+        """A camera on a moving mount: its pose on tf, ``POSE_RATE`` times a second."""
+        while not self._stopping.wait(1.0 / POSE_RATE):
+            self.source.broadcast_pose()
 
     def _debug_loop(self) -> None:
         period = 1.0 / self.params.debug_rate
@@ -554,6 +641,14 @@ class VisionSystemNode:
         message.header.frame_id = self.params.camera
         message.data = np.ascontiguousarray(image).tobytes()
         self.debug_pub.publish(message)
+
+
+def _why_not_registering(footprint) -> str:
+    """Why a vision system holds no registration it could renew: its field of view is unknown
+    (None) or empty (a stale feed, or no floor in sight)."""
+    if footprint is None:
+        return 'waiting for the field of view (CameraInfo, tf and a frame)'
+    return 'no field of view to register: the camera feed is stale or it sees no floor'
 
 
 def _moved(old, new, threshold: float) -> bool:

@@ -6,14 +6,8 @@ its waypoint loop at its speed, drives the robot's body from ``/robot/cmd_vel``
 the floor's edge, counting contacts; see :mod:`drvs.simulation`) and publishes
 every body's pose.
 
-Parameters (private):
-
-``~world`` (str, required)
-    The world file.
-``~rate`` (float, default 30)
-    Steps and publications per second.
-``~cmd_timeout`` (float, default 0.5)
-    Seconds without a ``/robot/cmd_vel`` message after which the robot stops.
+Parameters: the fields of :class:`WorldSimSettings`, each declared with its default,
+meaning and range; README.md's world_sim table is generated from them.
 
 Topics:
 
@@ -23,6 +17,9 @@ Topics:
     ``header.stamp`` (the state's time), ``names`` and ``poses`` (x, y, theta = yaw) of
     every body (``robot``, ``station`` and each object). For the vision systems and
     sim_camera, which render the world from it; robots never read it.
+``/tf``: ``map`` -> ``<body name>`` (tf2_msgs/TFMessage, every step)
+    The same poses for RViz, one frame per body on the floor at its centre, x along its
+    heading (:func:`drvs.ros.tf_frames.body_transform`), stamped as ``~poses``.
 ``~ground_truth`` = ``/world_sim/ground_truth`` (std_msgs/String, JSON, every step)
     ``{"stamp", "time" (simulated seconds), "robot": {"position": [x, y], "yaw",
     "command": [vx, vy]}, "contacts" (count of new touches so far), "touching"
@@ -42,14 +39,19 @@ import json
 import math
 import threading
 import time
+from dataclasses import dataclass
 
 import rospy
+import tf2_ros
 from geometry_msgs.msg import Twist
 from std_msgs.msg import String
 
 from drvs.guard import RESTART, LoopGuard
 from drvs.msg import BodyPoses
-from drvs.ros.messages import body_poses_to_msg
+from drvs.ros.messages import body_poses_to_msg, to_time
+from drvs.ros.params import read_params
+from drvs.ros.tf_frames import body_transform
+from drvs.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.simulation import Simulation
 from drvs.world import load_world
 
@@ -57,15 +59,22 @@ MAX_STEP = 0.2
 """Seconds; a longer gap between timer ticks (a stalled machine) is simulated as this."""
 
 
+@dataclass(frozen=True)
+class WorldSimSettings(Settings):
+    world: str = param(REQUIRED, 'the world file')
+    rate: float = param(30.0, 'simulation steps and publications per second', unit='Hz', check=POSITIVE)
+    cmd_timeout: float = param(
+        0.5, 'the robot stops after this long without a `/robot/cmd_vel` message', unit='s', check=POSITIVE
+    )
+
+
 class WorldSimNode:
     """Simulation + topics; :meth:`start` builds the world and starts the timer."""
 
-    def __init__(self, world_path: str, rate: float = 30.0, cmd_timeout: float = 0.5):
-        if not rate > 0:
-            raise ValueError(f'~rate: must be positive, got {rate}')
-        self.world = load_world(world_path)
-        self.rate = rate
-        self.cmd_timeout = cmd_timeout
+    def __init__(self, settings: WorldSimSettings):
+        self.world = load_world(settings.world)
+        self.rate = settings.rate
+        self.cmd_timeout = settings.cmd_timeout
         self.simulation: Simulation | None = None
         self._lock = threading.Lock()  # guards the simulation and the command time
         self._last_command = None
@@ -75,16 +84,13 @@ class WorldSimNode:
 
     @classmethod
     def from_params(cls) -> WorldSimNode:
-        return cls(
-            rospy.get_param('~world'),
-            rate=float(rospy.get_param('~rate', 30.0)),
-            cmd_timeout=float(rospy.get_param('~cmd_timeout', 0.5)),
-        )
+        return cls(read_params(WorldSimSettings))
 
     def start(self) -> None:
         self.simulation = Simulation(self.world)
         self.poses_pub = rospy.Publisher('~poses', BodyPoses, queue_size=2)
         self.truth_pub = rospy.Publisher('~ground_truth', String, queue_size=2)
+        self.tf_broadcaster = tf2_ros.TransformBroadcaster()
         rospy.Subscriber('/robot/cmd_vel', Twist, self._on_cmd_vel, queue_size=2)
         self._last_tick = rospy.get_time()
         self.guard.spawn(self._loop, 'simulation', RESTART)
@@ -135,6 +141,8 @@ class WorldSimNode:
             poses = self.simulation.poses()
             truth = self.simulation.ground_truth()
         self.poses_pub.publish(body_poses_to_msg(poses, now))
+        stamp = to_time(now)  # the stamp of ~poses: the state's time
+        self.tf_broadcaster.sendTransform([body_transform(name, pose, stamp) for name, pose in poses.items()])
         self.truth_pub.publish(String(json.dumps({'stamp': now, **truth})))
 
     def stop(self) -> None:

@@ -1,0 +1,134 @@
+"""Generate README.md's parameter tables from the nodes' settings dataclasses.
+
+    .venv/bin/python -m drvs.ros.param_docs                    # print every node's table
+    .venv/bin/python -m drvs.ros.param_docs --write README.md  # rewrite them in place (make docs)
+
+Each node's table lies between ``<!-- params:NODE:begin -->`` and
+``<!-- params:NODE:end -->``; one row per field of its settings dataclass, as
+declared with :func:`drvs.settings.param`. ``test/test_param_docs.py`` fails
+when README.md and the code disagree, so the parameters are documented once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from drvs.ros.recorder import RecorderSettings
+from drvs.ros.robot import RobotParams
+from drvs.ros.server import ServerSettings
+from drvs.ros.sim_camera import SimCameraParams
+from drvs.ros.vision_system import VisionSystemParams
+from drvs.ros.world_sim import WorldSimSettings
+from drvs.settings import annotation_type
+
+NODES = {
+    'drvs_server': ServerSettings,
+    'vision_system': VisionSystemParams,
+    'blind_robot': RobotParams,
+    'world_sim': WorldSimSettings,
+    'sim_camera': SimCameraParams,
+    'scenario_recorder': RecorderSettings,
+}
+"""Node name (as in the README markers) -> its settings dataclass."""
+
+HEADER = '| parameter | type | default | meaning |\n|---|---|---|---|'
+
+
+def _type(field: dataclasses.Field) -> str:
+    declared = field.metadata.get('range')
+    if declared is not None and declared.short.startswith('`'):  # one of some strings
+        return declared.short
+    text = annotation_type(field.type)[0].__name__
+    if field.metadata.get('separator'):
+        text += ' or list of str'
+    return f'{text} {declared.short}' if declared is not None else text
+
+
+def _default(field: dataclasses.Field) -> str:
+    if field.metadata.get('default_text'):
+        return field.metadata['default_text']
+    value = field.default
+    if value is dataclasses.MISSING:
+        return 'required'
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return f'`{value}`' if value else 'empty'
+    if value is None:
+        return 'none'
+    unit = field.metadata.get('unit', '')
+    separator = '' if unit.startswith('/') or not unit else ' '
+    return f'{value:g}{separator}{unit}'
+
+
+def table(cls) -> str:
+    """The Markdown table of the settings dataclass ``cls``.
+
+    :raises ValueError: for a field not declared with :func:`drvs.settings.param` (no meaning).
+    """
+    rows = [HEADER]
+    for field in dataclasses.fields(cls):
+        meaning = field.metadata.get('meaning')
+        if not meaning:
+            raise ValueError(f'{cls.__name__}.{field.name}: no meaning; declare it with drvs.settings.param')
+        cells = (f'`~{field.name}`', _type(field), _default(field), meaning)
+        rows.append('| ' + ' | '.join(cell.replace('|', '\\|') for cell in cells) + ' |')
+    return '\n'.join(rows)
+
+
+def markers(node: str) -> tuple[str, str]:
+    return f'<!-- params:{node}:begin -->', f'<!-- params:{node}:end -->'
+
+
+def block(text: str, node: str) -> str | None:
+    """What ``text`` holds between ``node``'s markers (stripped), or None without them."""
+    begin, end = markers(node)
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        return None
+    return text[start + len(begin) : stop].strip()
+
+
+def rewritten(text: str) -> str:
+    """``text`` with every node's table regenerated between its markers.
+
+    :raises ValueError: naming a node whose markers are missing.
+    """
+    for node, cls in NODES.items():
+        if block(text, node) is None:
+            begin, end = markers(node)
+            raise ValueError(f'{node}: no {begin} ... {end} in the file')
+        begin, end = markers(node)
+        head, rest = text.split(begin, 1)
+        tail = rest.split(end, 1)[1]
+        text = f'{head}{begin}\n{table(cls)}\n{end}{tail}'
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--write', type=Path, metavar='FILE', help='rewrite the tables in FILE (README.md)')
+    options = parser.parse_args(argv)
+    if options.write is None:
+        for node, cls in NODES.items():
+            print(f'{node}:\n\n{table(cls)}\n')
+        return 0
+    text = options.write.read_text()
+    try:
+        new = rewritten(text)
+    except ValueError as error:
+        print(f'{options.write}: {error}', file=sys.stderr)
+        return 1
+    if new == text:
+        print(f'{options.write}: parameter tables up to date')
+    else:
+        options.write.write_text(new)
+        print(f'{options.write}: parameter tables rewritten')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""The README's hand-run example ("Talking to a running DRVS by hand"), run as written.
+
+The test reads the section's shell blocks from README.md and runs them in order
+against a private master: terminal 1's ``roscore`` is the harness's master (its
+``ROS_MASTER_URI`` is in the environment, which ``scripts/env.sh`` keeps),
+terminal 2's ``run_scenario.sh ... --stay`` runs in the background, and each
+command of terminal 3 and of the blocks after it runs once the robot is done.
+The ``# ...`` lines under a command are its documented output: every one must
+appear in what it prints, with numbers, times and ``...`` free to differ.
+"""
+
+import re
+from pathlib import Path
+
+from drvs.testing import RosHarness, wait_for
+
+README = Path(__file__).resolve().parents[1] / 'README.md'
+SECTION = '## Talking to a running DRVS by hand'
+NUMBER = r'-?\d+(?:\.\d+)?'
+
+
+def shell_blocks(section: str) -> list[str]:
+    """The ```sh blocks of one README section, in order."""
+    text = README.read_text()
+    start = text.index(section)
+    end = text.find('\n## ', start + len(section))
+    return re.findall(r'```sh\n(.*?)```', text[start:end], re.S)
+
+
+def commands(block: str) -> list[tuple[str, list[str]]]:
+    """(command, documented output lines) per command of a block; continuation lines joined."""
+    result: list[tuple[str, list[str]]] = []
+    pending = ''
+    for line in block.splitlines():
+        if line.startswith('# ') and not pending:
+            if result:
+                result[-1][1].append(line[2:])
+            continue
+        code = line.split('  #', 1)[0].rstrip()  # a trailing comment explains, it is not output
+        if not code:
+            continue
+        pending += code.removesuffix('\\')  # a backslash-newline joins lines, as in bash
+        if not code.endswith('\\') and pending.count('"') % 2 == 0:
+            result.append((pending, []))
+            pending = ''
+        elif not code.endswith('\\'):
+            pending += '\n'  # inside a quoted argument that spans lines
+    return result
+
+
+def output_pattern(documented: str) -> re.Pattern:
+    """``documented`` as a regex: numbers match any number, ``...`` anything, the rest literally."""
+    parts = re.split(rf'(\.\.\.|{NUMBER})', documented)
+    regex = ''.join(
+        '.*' if part == '...' else NUMBER if re.fullmatch(NUMBER, part) else re.escape(part) for part in parts
+    )
+    return re.compile(regex)
+
+
+def test_the_readme_commands_parse_into_the_three_terminals():
+    blocks = shell_blocks(SECTION)
+    assert len(blocks) >= 3, blocks
+    assert [command for command, _ in commands(blocks[0])] == ['source scripts/env.sh', 'roscore']
+    ((runner, _),) = commands(blocks[1])
+    assert runner.startswith('scripts/run_scenario.sh') and '--stay' in runner
+    asked = commands(blocks[2])
+    assert asked[-1][0].startswith('rosservice call /drvs/detect_object_boundary')
+    assert 'accepted: True' in asked[-1][1]
+    assert output_pattern('x 5.694..6.095, (1.5, ...)').fullmatch('x 5.7..6.1, (1.25, 2, 3)')
+
+
+def test_the_hand_run_example_works_as_written(ros: RosHarness):
+    terminal1, terminal2, terminal3, *more = (commands(block) for block in shell_blocks(SECTION))
+    assert [command for command, _ in terminal1] == [
+        'source scripts/env.sh',
+        'roscore',
+    ]  # the harness's master
+    ((run_command, _),) = terminal2
+    runner = ros.spawn('run_scenario', ['bash', '-c', f'source scripts/env.sh && exec {run_command}'])
+    wait_for(
+        lambda: 'keep running' in runner.log() or not runner.running(),
+        150,
+        'the scenario to finish and stay up',
+        interval=0.5,
+        on_timeout=runner.describe,
+    )
+    assert runner.running(), f'run_scenario.sh --stay exited\n{runner.describe()}'
+    assert 'robot reached' in runner.log(), runner.describe()
+
+    assert terminal3[0][0] == 'source scripts/env.sh'  # ros.run sources it for every command
+    for command, documented in terminal3[1:] + [line for block in more for line in block]:
+        result = ros.run(command, timeout=60)
+        assert result.returncode == 0, f'{command}\n{result.stdout}\n{result.stderr}'
+        printed = result.stdout.splitlines()
+        for line in documented:
+            pattern = output_pattern(line.strip())
+            assert any(
+                pattern.fullmatch(out.strip()) for out in printed
+            ), f'{command!r} did not print {line!r}:\n{result.stdout}\n{result.stderr}'
