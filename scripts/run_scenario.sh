@@ -140,7 +140,7 @@ print(" ".join(c.name for c in load_world(sys.argv[1]).vision_systems))' "$world
 if [ $record -eq 1 ]; then
   # Not in pids: stop_all stops it after every node. Ready once it subscribes to every topic.
   topics="/drvs/registry /drvs/markers /world_sim/poses /world_sim/ground_truth /robot/status /robot/path
-    /robot/map /robot/cmd_vel /scenario_recorder/samples /diagnostics /tf /tf_static /rosout"
+    /robot/map /robot/pose /robot/cmd_vel /scenario_recorder/samples /diagnostics /tf /tf_static /rosout"
   for camera in $cameras; do topics+=" /$camera/stats"; done
   # The program `rosbag record` runs, started directly: SIGINT reaches it (not a wrapper
   # that fails on the SIGINT it finds ignored in a background job) and its end is the bag's.

@@ -38,6 +38,7 @@ REQUIRED_TOPICS = (
     '/robot/status',
     '/robot/path',
     '/robot/map',
+    '/robot/pose',
     '/robot/cmd_vel',
     '/vs1/stats',
     '/vs2/stats',

@@ -7,6 +7,7 @@ tf through a tf2 listener (test/nodes/tf_lookup.py).
 """
 
 import json
+import math
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -193,6 +194,12 @@ def test_the_blind_robot_reports_its_state_and_echo_shows_its_status(ros):
     assert (shown['state'], shown['state_name'], shown['reason']) == (RobotStatus.ARRIVED, 'arrived', '')
     assert shown['header']['frame_id'] == 'map' and shown['has_position'] is True
     assert set(shown['roles']) >= {'self', 'station'}
+
+    # Its belief, for RViz: where its status says it is, in map.
+    pose = echo(ros, '/robot/pose')
+    assert pose['header']['frame_id'] == 'map'
+    believed = (pose['pose']['position']['x'], pose['pose']['position']['y'])
+    assert math.dist(believed, (shown['position']['x'], shown['position']['y'])) < 0.05
 
 
 # -- one stack: world_sim, the server, vs1 ---------------------------------------------------------

@@ -58,6 +58,9 @@ Services and topics (``~`` = ``/robot`` when run as ``__name:=robot``):
 ``~cmd_vel`` (geometry_msgs/Twist): ``linear.x``, ``linear.y`` velocity in ``map``.
 ``~path`` (nav_msgs/Path, latched): the current plan.
 ``~map`` (nav_msgs/OccupancyGrid, latched): 0 free, 99 inflated margin, 100 obstacle.
+``~pose`` (geometry_msgs/PoseStamped, every tick once it has a fix): where the robot
+believes it is (the newest fix carried forward by its own commands), in ``map``; the
+orientation is the heading the cameras saw with an ``apriltag`` self model, else +x.
 ``~status`` (drvs/RobotStatus, latched, every tick): state (a constant and its name:
 localising, moving, blocked, arriving, arrived, failed), reason, replans,
 distance_to_goal, position (and the heading the cameras saw, with an ``apriltag``
@@ -275,6 +278,7 @@ class BlindRobot:
         self.path_pub = rospy.Publisher('~path', Path, queue_size=1, latch=True)
         self.map_pub = rospy.Publisher('~map', OccupancyGrid, queue_size=1, latch=True)
         self.status_pub = rospy.Publisher('~status', RobotStatus, queue_size=1, latch=True)
+        self.pose_pub = rospy.Publisher('~pose', PoseStamped, queue_size=1)
         self.callback_service = rospy.resolve_name('~callback_coordinates')
         self._service = rospy.Service('~callback_coordinates', CallbackCoordinates, self._on_callback)
         self._started_at = rospy.get_time()
@@ -545,9 +549,23 @@ class BlindRobot:
                 status.update(tag_pose=[fix.position[0], fix.position[1], fix.heading], tag_stamp=fix.stamp)
         status.update(obstacles=self._obstacles, stamp=now)
         self.status_pub.publish(robot_status_to_msg(status))
+        if controller.position is not None:
+            heading = fix.heading if fix is not None and fix.heading is not None else None
+            self.pose_pub.publish(self._pose_msg(controller.position, heading))
         if controller.path is not self._last_path:
             self._last_path = controller.path
             self.path_pub.publish(self._path_msg(controller.path))
+
+    @staticmethod
+    def _pose_msg(position, heading: float | None) -> PoseStamped:
+        """Where the robot believes it is, in ``map``; facing +x when no camera saw its heading."""
+        msg = PoseStamped()
+        msg.header.frame_id = 'map'
+        msg.header.stamp = rospy.Time.now()
+        msg.pose.position.x, msg.pose.position.y = position
+        yaw = heading or 0.0
+        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        return msg
 
     def _path_msg(self, points) -> Path:
         msg = Path()
