@@ -2,9 +2,10 @@
 
 :class:`RunRecord` holds the recording (plans, driven trajectory, re-plans,
 fields of view, the robot's map, per-camera traffic, CPU use). :func:`summary`
-turns it into the ``summary.json`` dictionary and :func:`draw` into the
-picture, in the style of the paper's Figures 7, 8, 10 and 11; :func:`write_report`
-writes both and ``trace.json`` (the live recorder and ``drvs_report`` share it).
+turns it into the ``summary.json`` dictionary and :func:`picture` into the
+picture (a matplotlib Figure, which :func:`draw` writes as a PNG), in the style
+of the paper's Figures 7, 8, 10 and 11; :func:`write_report` writes both and
+``trace.json`` (the live recorder and ``drvs_report`` share it).
 :func:`hindsight_shortest_length` is the shortest collision-free route among
 the world's static obstacles, computed on a visibility graph (exact for
 polygonal obstacles, unlike a grid).
@@ -141,18 +142,45 @@ def write_report(record: RunRecord, out: str | Path) -> dict:
     return result
 
 
-def draw(record: RunRecord, path: str | Path) -> None:
-    """Write the run's picture: floor, fields of view, obstacles, plans, trajectory, re-plans."""
-    import matplotlib
+# Colours of the picture: the driven trajectory alone in red; cameras and humans from
+# palettes without it (the plans are blue to green, the robot's map orange).
+TRAJECTORY_COLOUR = 'red'
+CAMERA_COLOURS = ('tab:blue', 'tab:cyan', 'tab:olive', 'tab:gray', 'navy', 'teal', 'goldenrod', 'slategray')
+HUMAN_COLOURS = ('tab:brown', 'tab:pink', 'darkmagenta')
 
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+
+def camera_name(service: str) -> str:
+    """The vision system a registered service belongs to.
+
+    >>> camera_name('/vs1/detect_object_boundary')
+    'vs1'
+    """
+    return service.strip('/').split('/')[0]
+
+
+def draw(record: RunRecord, path: str | Path) -> None:
+    """Write the run's picture (:func:`picture`) to ``path`` (a PNG)."""
+    picture(record).savefig(path, bbox_inches='tight')
+
+
+def picture(record: RunRecord):
+    """The run's picture as a matplotlib Figure (no pyplot, nothing global), its legend beside it.
+
+    Floor, the robot's map, every camera (position and dashed field of view, one legend
+    entry each, by name; a camera of the world that never registered is marked so),
+    obstacles, each human's walk and last position, the station, the plans, the driven
+    trajectory with its start and the robot's final position, tag poses and re-plans.
+    """
+    import matplotlib
+    from matplotlib.colors import ListedColormap
+    from matplotlib.figure import Figure
     from matplotlib.patches import Polygon as Patch
     from matplotlib.patches import Rectangle
 
     world = record.world
     width, height = world.floor_size
-    figure, axes = plt.subplots(figsize=(10, 10 * height / width + 0.8), dpi=110)
+    figure = Figure(figsize=(10, 10 * height / width + 0.8), dpi=110)
+    axes = figure.subplots()
     axes.add_patch(Rectangle((0, 0), width, height, facecolor='#f4f4f0', edgecolor='black'))
 
     if record.grid is not None and record.grid.size:
@@ -163,8 +191,6 @@ def draw(record: RunRecord, path: str | Path) -> None:
             record.grid_origin[1],
             record.grid_origin[1] + rows * record.grid_resolution,
         )
-        from matplotlib.colors import ListedColormap
-
         # Cells the robot ever mapped: 100 = an obstacle outline, 99 = its inflated margin.
         layers = np.ma.masked_less(record.grid.astype(float), 99)
         axes.imshow(
@@ -182,26 +208,44 @@ def draw(record: RunRecord, path: str | Path) -> None:
         )
         axes.add_patch(Rectangle((0, 0), 0, 0, facecolor='#fde0c5', label='inflated by the robot radius'))
 
-    palette = plt.get_cmap('tab10')
-    for i, (name, fov) in enumerate(sorted(record.fields_of_view.items())):
-        colour = palette(i % 10)
-        axes.add_patch(
-            Patch(fov, closed=True, fill=False, linestyle='--', linewidth=1.3, edgecolor=colour, zorder=2)
-        )
-        cx, cy = np.mean(np.asarray(fov), axis=0)
-        camera = next((c for c in world.vision_systems if c.name == name.strip('/').split('/')[0]), None)
-        if camera is not None:
-            cx, cy = camera.position[:2]
-        axes.plot(cx, cy, marker='s', color='gold', markeredgecolor='black', markersize=9, zorder=6)
-        axes.annotate(
-            name.strip('/').split('/')[0],
-            (cx, cy),
-            xytext=(6, 6),
-            textcoords='offset points',
-            color=colour,
-            fontsize=9,
+    cameras = {camera.name: camera for camera in world.vision_systems}
+    views = {camera_name(service): fov for service, fov in record.fields_of_view.items()}
+    for i, name in enumerate(sorted(set(cameras) | set(views))):
+        colour = CAMERA_COLOURS[i % len(CAMERA_COLOURS)]
+        fov = views.get(name)
+        if fov:
+            axes.add_patch(
+                Patch(
+                    fov,
+                    closed=True,
+                    fill=False,
+                    linestyle='--',
+                    linewidth=1.3,
+                    edgecolor=colour,
+                    zorder=2,
+                    label=f'{name} field of view',
+                )
+            )
+        if name in cameras:
+            cx, cy = cameras[name].position[:2]
+        else:
+            cx, cy = np.mean(np.asarray(fov), axis=0)
+        axes.plot(
+            cx,
+            cy,
+            marker='s',
+            color='gold' if fov else 'lightgrey',
+            markeredgecolor='black',
+            markersize=9,
+            linestyle='none',
             zorder=6,
+            label=None if fov else f'{name}: no field of view registered',
         )
+        axes.annotate(
+            name, (cx, cy), xytext=(6, 6), textcoords='offset points', color=colour, fontsize=9, zorder=6
+        )
+    if views:
+        axes.plot([], [], 's', color='gold', markeredgecolor='black', markersize=9, label='camera')
 
     def rgb(colour):
         return tuple(c / 255.0 for c in colour)
@@ -218,11 +262,21 @@ def draw(record: RunRecord, path: str | Path) -> None:
                     zorder=3,
                 )
             )
-    for name, trace in record.humans.items():
+    for i, (name, trace) in enumerate(sorted(record.humans.items())):
         if trace:
             xs, ys = zip(*trace, strict=True)
-            axes.plot(xs, ys, ':', color='red', linewidth=1, zorder=3)
-            axes.plot(xs[-1], ys[-1], 'o', color='red', markersize=10, zorder=3, label=f'human {name}')
+            axes.plot(
+                xs,
+                ys,
+                ':',
+                color=HUMAN_COLOURS[i % len(HUMAN_COLOURS)],
+                linewidth=1.5,
+                marker='o',
+                markersize=10,
+                markevery=[len(xs) - 1],
+                zorder=3,
+                label=f'human {name}: walk and last position',
+            )
     axes.add_patch(
         Patch(
             world.station.footprint(),
@@ -234,7 +288,7 @@ def draw(record: RunRecord, path: str | Path) -> None:
         )
     )
 
-    plan_colours = plt.get_cmap('winter')
+    plan_colours = matplotlib.colormaps['winter']
     for i, (_, plan) in enumerate(record.plans):
         if len(plan) >= 2:
             xs, ys = zip(*plan, strict=True)
@@ -251,9 +305,19 @@ def draw(record: RunRecord, path: str | Path) -> None:
             )
     if record.trajectory:
         _, xs, ys = zip(*record.trajectory, strict=True)
-        axes.plot(xs, ys, '-', color='red', linewidth=2.5, zorder=5, label='driven trajectory')
+        axes.plot(xs, ys, '-', color=TRAJECTORY_COLOUR, linewidth=2.5, zorder=5, label='driven trajectory')
         axes.plot(
             xs[0], ys[0], 'o', color='green', markeredgecolor='black', markersize=10, zorder=6, label='start'
+        )
+        axes.plot(
+            xs[-1],
+            ys[-1],
+            '*',
+            color=TRAJECTORY_COLOUR,
+            markeredgecolor='black',
+            markersize=17,
+            zorder=7,
+            label='robot at the end',
         )
     if record.tag_poses:
         # The robot's poses as DRVS saw its tag: position and heading, not predicted.
@@ -286,7 +350,5 @@ def draw(record: RunRecord, path: str | Path) -> None:
     axes.set_xlabel('x (m, map)')
     axes.set_ylabel('y (m, map)')
     axes.grid(True, linewidth=0.3)
-    axes.legend(loc='upper left', fontsize=8, framealpha=0.8)
-    figure.tight_layout()
-    figure.savefig(path)
-    plt.close(figure)
+    axes.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, framealpha=0.8)
+    return figure

@@ -17,30 +17,36 @@ wording per kind of error, naming the parameter as it is set:
 Example(lease=10.0, workers=2)
 >>> Example(lease=-1)
 Traceback (most recent call last):
-ValueError: ~lease: must be positive, got -1.0
->>> Example(workers=0)
+drvs.settings.ParamError: ~lease: must be positive, got -1.0
+>>> Example(lease=0, workers=0)
 Traceback (most recent call last):
-ValueError: ~workers: must be at least 1, got 0
+drvs.settings.ParamError: ~lease: must be positive, got 0.0
+~workers: must be at least 1, got 0
 
-A field without a default is required (``param(REQUIRED, ...)``). A range is
-not checked on ``None``, the value of an optional field left unset.
+Every problem is reported at once, one line each, in a :class:`ParamError` (a
+``ValueError``) that keeps each parameter's name apart from its problem, so a
+node can say where a wrong value came from. A field without a default is
+required (``param(REQUIRED, ...)``). A range is not checked on ``None``, the
+value of an optional field left unset.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 __all__ = [
     'NON_NEGATIVE',
     'POSITIVE',
+    'ParamError',
     'REQUIRED',
     'Range',
     'Settings',
     'at_least',
     'between',
     'check',
+    'checked',
     'one_of',
     'param',
     'typed',
@@ -48,6 +54,41 @@ __all__ = [
 
 REQUIRED = dataclasses.MISSING
 """The default of a parameter that has none: it must be given."""
+
+
+class ParamError(ValueError):
+    """Parameters that cannot be used: one ``~name: problem`` line per parameter.
+
+    :param name: the parameter, without ``~``.
+    :param problem: what is wrong with it, e.g. ``must be positive, got -1.0``.
+    """
+
+    def __init__(self, name: str, problem: str):
+        self.problems: tuple[tuple[str, str], ...] = ((name, problem),)
+        super().__init__(f'~{name}: {problem}')
+
+    @classmethod
+    def of(cls, problems: Iterable[tuple[str, str]]) -> ParamError:
+        """One error listing every ``(name, problem)``, in order."""
+        problems = tuple(problems)
+        error = cls(*problems[0])
+        error.problems = problems
+        error.args = ('\n'.join(f'~{name}: {problem}' for name, problem in problems),)
+        return error
+
+    @classmethod
+    def combined(cls, errors: Iterable[ParamError]) -> ParamError:
+        """One error listing the problems of every error in ``errors``."""
+        return cls.of(problem for error in errors for problem in error.problems)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The parameters named, in order."""
+        return tuple(name for name, _ in self.problems)
+
+    def annotated(self, note: Callable[[str], str]) -> ParamError:
+        """The same error with ``note(name)`` appended to each problem (nothing for an empty note)."""
+        return ParamError.of((name, problem + note(name)) for name, problem in self.problems)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,18 +167,30 @@ def annotation_type(annotation) -> tuple[type, bool]:
 def typed(name: str, value, annotation):
     """``value`` as the field's type (an int where a float is expected becomes one).
 
-    :raises ValueError: ``~name: expected a number, got 'fast'``; a number must be finite.
+    :raises ParamError: ``~name: expected a number, got 'fast'``; a number must be finite.
     """
     expected, optional = annotation_type(annotation)
     if value is None and optional:
         return None
     if isinstance(value, bool) != (expected is bool):
-        raise ValueError(f'~{name}: expected {_WHAT[expected]}, got {value!r}')
+        raise ParamError(name, f'expected {_WHAT[expected]}, got {value!r}')
     if expected is float and isinstance(value, int | float) and math.isfinite(value):
         return float(value)
     if expected is not float and isinstance(value, expected):
         return value
-    raise ValueError(f'~{name}: expected {_WHAT[expected]}, got {value!r}')
+    raise ParamError(name, f'expected {_WHAT[expected]}, got {value!r}')
+
+
+def checked(field: dataclasses.Field, value):
+    """``value`` of the settings field ``field`` as its type (:func:`typed`), checked against its range.
+
+    :raises ParamError: ``~name: <rule>, got <value>``, or as :func:`typed`.
+    """
+    value = typed(field.name, value, field.type)
+    declared = field.metadata.get('range')
+    if declared is not None and value is not None and not declared.holds(value):
+        raise ParamError(field.name, f'{declared.rule}, got {value!r}')
+    return value
 
 
 def check(settings) -> None:
@@ -145,21 +198,26 @@ def check(settings) -> None:
 
     Numbers given as ints where floats are declared are stored as floats.
 
-    :raises ValueError: ``~name: <rule>, got <value>`` for the first field out of its range.
+    :raises ParamError: ``~name: <rule>, got <value>``, one line for each field of the wrong
+        type or out of its range.
     """
+    errors = []
     for field in dataclasses.fields(settings):
-        value = typed(field.name, getattr(settings, field.name), field.type)
+        try:
+            value = checked(field, getattr(settings, field.name))
+        except ParamError as error:
+            errors.append(error)
+            continue
         object.__setattr__(settings, field.name, value)  # frozen: only an int made a float
-        declared = field.metadata.get('range')
-        if declared is not None and value is not None and not declared.holds(value):
-            raise ValueError(f'~{field.name}: {declared.rule}, got {value!r}')
+    if errors:
+        raise ParamError.combined(errors)
 
 
 class Settings:
     """Base of a settings dataclass: building one checks it (:func:`check`).
 
     A subclass with rules across fields extends ``__post_init__``: ``super().__post_init__()``
-    first, then its own checks, worded ``~name: must ..., got ...``.
+    first, then its own checks, raising ``ParamError(name, 'must ..., got ...')``.
     """
 
     def __post_init__(self):

@@ -1,27 +1,105 @@
-"""World files (``worlds/*.yaml``): load and validate a scenario description.
+"""World files (``worlds/*.yaml``): load a scenario description, refusing one that makes no sense.
 
-Every error names the file, the key and what was expected, for example
-``worlds/x.yaml: objects[2].size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]``.
+A file is read in two passes, and every problem of both is reported at once in one
+:class:`WorldError`: first the form of each entry (types, ranges, keys that do not
+apply to it), then, over the entries that read well, whether the world is possible
+(bodies on the floor and apart, human walks clear of the boxes, colour models that
+find what they are meant to find and nothing else, cameras that see the floor).
+Each problem names the entry by its ``name`` and the key, for example::
+
+    worlds/x.yaml: 2 problems:
+      station.position: [8.0, 0.8] is outside the floor (x 0..7, y 0..5.5)
+      object 'box1'.size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]
+
 The keys are documented in ``worlds/README.md``; the stable core is in docs/design.md.
 """
 
 from __future__ import annotations
 
+import difflib
+import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import yaml
+from shapely.geometry import MultiPoint, Polygon
 
-from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.algorithms import AlgorithmError, ColourModel, parse_algorithm
+from drvs.algorithms.apriltag import TagQuery
+from drvs.camera import PinholeCamera
 from drvs.tag_images import FAMILIES, FAMILY_NAMES
 
 KINDS = ('static', 'human')
 ROLES = ('self', 'station', 'obstacle', 'human')
 
+TOP_KEYS = ('floor', 'robot', 'station', 'objects', 'vision_systems', 'colour_models')
+FLOOR_KEYS = ('size', 'colour')
+ROBOT_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'speed', 'tag')
+STATION_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'tag')
+STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy')
+HUMAN_KEYS = (
+    *STATIC_KEYS,
+    'waypoints',
+    'speed',
+    'loop',
+    'wait_for_robot',
+    'through_obstacles',
+)
+TAG_KEYS = ('family', 'id', 'size')
+CAMERA_KEYS = (
+    'name',
+    'position',
+    'fov_deg',
+    'resolution',
+    'target',
+    'up',
+    'waypoints',
+    'speed',
+    'distortion',
+)
+_ALL_KEYS = frozenset((*TOP_KEYS, *FLOOR_KEYS, *ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS))
+_HUMANS_ONLY = 'applies to humans only: add kind: human to make it walk'
+_TAGS_ONLY = 'only the robot and the station carry a tag'
+
+AREA = 1e-9
+"""Square metres below which two footprints touch rather than overlap."""
+EDGE = 1e-9
+"""Metres a footprint may reach past the floor's edge (rounding)."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong in a world file: the entry (by its name, '' for the file), the key, what."""
+
+    entry: str
+    key: str
+    message: str
+
+    def __str__(self) -> str:
+        where = '.'.join(part for part in (self.entry, self.key) if part)
+        return f'{where}: {self.message}' if where else self.message
+
 
 class WorldError(ValueError):
-    """A world file that cannot be used; the message names the file, the key and the problem."""
+    """A world file that cannot be used, with every :class:`Problem` found in it.
+
+    ``str()`` is the single problem on one line (``FILE: entry.key: problem``), or
+    ``FILE: N problems:`` followed by one indented line per problem.
+    """
+
+    def __init__(self, path: str | Path, problems):
+        self.path = Path(path)
+        self.problems = tuple(problems)
+        if len(self.problems) == 1:
+            text = f'{self.path}: {self.problems[0]}'
+        else:
+            lines = [f'{self.path}: {len(self.problems)} problems:']
+            lines += [f'  {problem}' for problem in self.problems]
+            text = '\n'.join(lines)
+        super().__init__(text)
 
 
 @dataclass(frozen=True)
@@ -56,6 +134,8 @@ class Body:
     loop: bool = True
     wait_for_robot: bool = False
     tag: Tag | None = None
+    through_obstacles: bool = False
+    decoy: bool = False
 
     @property
     def moving(self) -> bool:
@@ -109,7 +189,9 @@ class World:
             if camera.name == name:
                 return camera
         known = ', '.join(c.name for c in self.vision_systems) or 'none'
-        raise WorldError(f'{self.path}: vision_systems: no entry named {name!r} (known: {known})')
+        raise WorldError(
+            self.path, [Problem('vision_systems', '', f'no entry named {name!r} (known: {known})')]
+        )
 
 
 def box_footprint(centre, size, yaw: float) -> list[tuple[float, float]]:
@@ -123,304 +205,648 @@ def box_footprint(centre, size, yaw: float) -> list[tuple[float, float]]:
     ]
 
 
-class _Reader:
-    """Typed access to a YAML mapping, with errors that say file, key and expectation."""
+# -- pass 1: the form of each entry ---------------------------------------------------------------
+class _Invalid(Exception):
+    """A value that cannot be read; ``where`` is a suffix of its key (``[1]`` for a list item)."""
 
-    def __init__(self, path: Path):
-        self.path = path
-
-    def fail(self, key: str, expected: str, got) -> WorldError:
-        return WorldError(f'{self.path}: {key}: expected {expected}, got {got!r}')
-
-    def mapping(self, data, key: str) -> dict:
-        if not isinstance(data, dict):
-            raise self.fail(key, 'a mapping', data)
-        return data
-
-    def number(self, value, key: str, positive=False, minimum=None) -> float:
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise self.fail(key, 'a finite number', value)
-        if positive and value <= 0:
-            raise self.fail(key, 'a positive number', value)
-        if minimum is not None and value < minimum:
-            raise self.fail(key, f'a number >= {minimum}', value)
-        return float(value)
-
-    def vector(self, value, key: str, n: int, what: str, positive=False) -> tuple[float, ...]:
-        expected = f'{n} {"positive " if positive else ""}numbers {what}'
-        if not isinstance(value, list | tuple) or len(value) != n:
-            raise self.fail(key, expected, value)
-        try:
-            return tuple(self.number(v, key, positive=positive) for v in value)
-        except WorldError:
-            raise self.fail(key, expected, value) from None
-
-    def colour(self, value, key: str) -> tuple[int, int, int]:
-        if (
-            not isinstance(value, list | tuple)
-            or len(value) != 3
-            or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in value)
-        ):
-            raise self.fail(key, '3 integers 0-255 [r, g, b]', value)
-        return tuple(value)
-
-    def waypoints(self, value, key: str) -> tuple[tuple[float, float], ...]:
-        if not isinstance(value, list) or len(value) < 2:
-            raise self.fail(key, 'a list of at least 2 points [[x, y], ...]', value)
-        return tuple(self.vector(p, f'{key}[{i}]', 2, '[x, y]') for i, p in enumerate(value))
-
-    def unknown(self, data: dict, key: str, allowed) -> None:
-        extra = sorted(set(data) - set(allowed))
-        if extra:
-            raise WorldError(
-                f'{self.path}: {key}: unknown key(s) {", ".join(map(str, extra))}; '
-                f'allowed: {", ".join(allowed)}'
-            )
+    def __init__(self, message: str, where: str = ''):
+        super().__init__(message)
+        self.message, self.where = message, where
 
 
-BODY_KEYS = (
-    'name',
-    'kind',
-    'position',
-    'size',
-    'yaw',
-    'colour',
-    'waypoints',
-    'speed',
-    'loop',
-    'wait_for_robot',
-    'tag',
-)
-TAG_KEYS = ('family', 'id', 'size')
-CAMERA_KEYS = (
-    'name',
-    'position',
-    'fov_deg',
-    'resolution',
-    'target',
-    'up',
-    'waypoints',
-    'speed',
-    'distortion',
-)
+def _expected(what: str, got) -> _Invalid:
+    return _Invalid(f'expected {what}, got {got!r}')
 
 
-def _tag(r: _Reader, data, key: str, body_size: tuple[float, float, float]) -> Tag:
-    data = r.mapping(data, key)
-    r.unknown(data, key, TAG_KEYS)
-    for required in TAG_KEYS:
-        if required not in data:
-            raise WorldError(f'{r.path}: {key}.{required}: missing')
-    family = data['family']
-    if family not in FAMILY_NAMES:
-        raise r.fail(f'{key}.family', f'one of {", ".join(FAMILY_NAMES)}', family)
-    count = FAMILIES[family].ids
-    tag_id = data['id']
-    if isinstance(tag_id, bool) or not isinstance(tag_id, int) or not 0 <= tag_id < count:
-        raise r.fail(f'{key}.id', f'an integer 0-{count - 1} (an id of {family})', tag_id)
-    size = r.number(data['size'], f'{key}.size', positive=True)
-    smaller = min(body_size[:2])
-    if size > smaller:
-        raise r.fail(f'{key}.size', f"at most the body's smaller side, {smaller:g} m", size)
-    return Tag(family, tag_id, size)
+def _is_number(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
 
 
-def _body(
-    r: _Reader, data, key: str, default_name: str, moving_allowed: bool, tag_allowed: bool = False
-) -> Body:
-    data = r.mapping(data, key)
-    r.unknown(data, key, BODY_KEYS)
-    for required in ('position', 'size', 'colour'):
-        if required not in data:
-            raise WorldError(f'{r.path}: {key}.{required}: missing')
-    kind = data.get('kind', 'static')
-    if kind not in KINDS:
-        raise r.fail(f'{key}.kind', ' or '.join(KINDS), kind)
-    name = data.get('name', default_name)
-    if not isinstance(name, str) or not name:
-        raise r.fail(f'{key}.name', 'a non-empty string', name)
-    waypoints, speed = (), 0.0
-    if 'speed' in data:
-        speed = r.number(data['speed'], f'{key}.speed', minimum=0)
-    if 'waypoints' in data:
-        if not moving_allowed:
-            raise WorldError(f'{r.path}: {key}.waypoints: only objects of kind human move')
-        waypoints = r.waypoints(data['waypoints'], f'{key}.waypoints')
-    if kind == 'human' and moving_allowed and (not waypoints or speed <= 0):
-        raise WorldError(f'{r.path}: {key}: a human needs waypoints (2 or more) and a positive speed')
-    if kind == 'static' and waypoints:
-        raise WorldError(f'{r.path}: {key}.waypoints: a static object cannot move; use kind: human')
-    flags = {}
-    for flag, default in (('loop', True), ('wait_for_robot', False)):
-        value = flags[flag] = data.get(flag, default)
-        if not isinstance(value, bool):
-            raise r.fail(f'{key}.{flag}', 'true or false', value)
-        if value != default and kind != 'human':
-            raise WorldError(f'{r.path}: {key}.{flag}: only humans walk; {flag} applies to kind human')
-    size = r.vector(data['size'], f'{key}.size', 3, '[x, y, z]', positive=True)
-    tag = None
-    if 'tag' in data:
-        if not tag_allowed:
-            raise WorldError(f'{r.path}: {key}.tag: only the robot and the station carry a tag')
-        tag = _tag(r, data['tag'], f'{key}.tag', size)
-    return Body(
-        name=name,
-        position=r.vector(data['position'], f'{key}.position', 2, '[x, y]'),
-        size=size,
-        colour=r.colour(data['colour'], f'{key}.colour'),
-        yaw=r.number(data.get('yaw', 0.0), f'{key}.yaw'),
-        kind=kind,
-        waypoints=waypoints,
-        speed=speed,
-        **flags,
-        tag=tag,
-    )
+def _is_integer(value, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
 
 
-def _camera(r: _Reader, data, key: str) -> Camera:
-    data = r.mapping(data, key)
-    r.unknown(data, key, CAMERA_KEYS)
-    for required in ('name', 'position', 'fov_deg'):
-        if required not in data:
-            raise WorldError(f'{r.path}: {key}.{required}: missing')
-    name = data['name']
-    if not isinstance(name, str) or not name.replace('_', 'a').isalnum() or not name[0].isalpha():
-        raise r.fail(f'{key}.name', 'a ROS node name (letters, digits, _; starting with a letter)', name)
-    position = r.vector(data['position'], f'{key}.position', 3, '[x, y, z]')
-    if position[2] <= 0:
-        raise r.fail(f'{key}.position', 'a camera above the floor (z > 0)', list(position))
-    fov = r.number(data['fov_deg'], f'{key}.fov_deg')
-    if not 1.0 <= fov <= 170.0:
-        raise r.fail(f'{key}.fov_deg', 'a vertical field of view between 1 and 170 degrees', fov)
-    resolution = data.get('resolution', [800, 600])
+def _number(value, positive: bool = False) -> float:
+    if not _is_number(value):
+        raise _expected('a finite number', value)
+    if positive and value <= 0:
+        raise _expected('a positive number', value)
+    return float(value)
+
+
+def _vector(value, n: int, what: str, positive: bool = False) -> tuple[float, ...]:
     if (
-        not isinstance(resolution, list)
-        or len(resolution) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and 16 <= v <= 4096 for v in resolution)
+        not isinstance(value, list | tuple)
+        or len(value) != n
+        or not all(_is_number(v) and (v > 0 or not positive) for v in value)
     ):
-        raise r.fail(f'{key}.resolution', '2 integers 16-4096 [width, height]', resolution)
-    target = r.vector(data.get('target', [position[0], position[1], 0.0]), f'{key}.target', 3, '[x, y, z]')
-    up = r.vector(data.get('up', [0.0, 1.0, 0.0]), f'{key}.up', 3, '[x, y, z]')
+        raise _expected(f'{n} {"positive " if positive else ""}numbers {what}', value)
+    return tuple(float(v) for v in value)
+
+
+def _integers(value, n: int, low: int, high: int, what: str) -> tuple[int, ...]:
+    if (
+        not isinstance(value, list | tuple)
+        or len(value) != n
+        or not all(_is_integer(v, low, high) for v in value)
+    ):
+        raise _expected(f'{n} integers {low}-{high} {what}', value)
+    return tuple(value)
+
+
+def _colour(value) -> tuple[int, int, int]:
+    return _integers(value, 3, 0, 255, '[r, g, b]')
+
+
+def _points(value) -> tuple[tuple[float, float], ...]:
+    if not isinstance(value, list) or len(value) < 2:
+        raise _expected('a list of at least 2 points [[x, y], ...]', value)
+    points = []
+    for i, point in enumerate(value):
+        try:
+            points.append(_vector(point, 2, '[x, y]'))
+        except _Invalid as error:
+            raise _Invalid(error.message, f'[{i}]') from None
+    return tuple(points)
+
+
+def _flag(value) -> bool:
+    if not isinstance(value, bool):
+        raise _expected('true or false', value)
+    return value
+
+
+def _one_of(value, choices: tuple[str, ...], expected: str) -> str:
+    if value not in choices:
+        raise _expected(expected, value)
+    return value
+
+
+def _tag_id(value, family: str) -> int:
+    count = FAMILIES[family].ids
+    if not _is_integer(value, 0, count - 1):
+        raise _expected(f'an integer 0-{count - 1} (an id of {family})', value)
+    return value
+
+
+def _body_name(value) -> str:
+    if not isinstance(value, str) or not value:
+        raise _expected('a non-empty string', value)
+    return value
+
+
+def _is_node_name(value) -> bool:
+    return isinstance(value, str) and value[:1].isalpha() and value.replace('_', 'a').isalnum()
+
+
+def _node_name(value) -> str:
+    if not _is_node_name(value):
+        raise _expected('a ROS node name (letters, digits, _; starting with a letter)', value)
+    return value
+
+
+def _list(value, non_empty: bool) -> list:
+    if value is None and not non_empty:
+        return []
+    if not isinstance(value, list) or (non_empty and not value):
+        raise _expected('a non-empty list' if non_empty else 'a list', value)
+    return value
+
+
+def _mapping(value) -> dict:
+    if not isinstance(value, dict):
+        raise _expected('a mapping', value)
+    return value
+
+
+class _Report:
+    """The problems found so far; :meth:`sorted` lists them in the order the file names its entries."""
+
+    def __init__(self):
+        self.problems: list[Problem] = []
+        self.entries: list[str] = ['', 'floor']
+
+    def entry(self, label: str) -> str:
+        self.entries.append(label)
+        return label
+
+    def add(self, entry: str, key: str, message: str) -> None:
+        self.problems.append(Problem(entry, key, message))
+
+    def sorted(self) -> list[Problem]:
+        order = {label: i for i, label in reversed(list(enumerate(self.entries)))}  # first mention
+        return sorted(self.problems, key=lambda problem: order.get(problem.entry, len(order)))
+
+
+_REQUIRED = object()
+
+
+class _Entry:
+    """The keys of one mapping of a world file, read one by one: a bad key is reported and reads
+    as None, so the other keys (and entries) are still checked. ``broken`` says whether a value
+    is missing or bad (a key that does not apply alone does not break the entry)."""
+
+    def __init__(self, report: _Report, label: str, data: dict, keys, what: str, hints=None, prefix=''):
+        self.report, self.label, self.data, self.prefix = report, label, data, prefix
+        self.broken = False
+        for key in data:
+            if key not in keys:
+                self.report.add(label, prefix + str(key), _unknown_key(key, keys, what, hints or {}))
+
+    def problem(self, key: str, message: str) -> None:
+        self.report.add(self.label, self.prefix + key, message)
+        self.broken = True
+
+    def read(self, key: str, reader: Callable, *args, default=_REQUIRED, missing: str = 'missing'):
+        """``reader(value, *args)`` of ``key``; ``default`` (as is) when it is absent."""
+        if key not in self.data:
+            if default is _REQUIRED:
+                self.problem(key, missing)
+                return None
+            return default
+        try:
+            return reader(self.data[key], *args)
+        except _Invalid as error:
+            self.problem(key + error.where, error.message)
+            return None
+
+
+def _unknown_key(key, keys: tuple[str, ...], what: str, hints: dict[str, str]) -> str:
+    """Why ``key`` is refused in an entry whose keys are ``keys``; "did you mean" when one is close.
+
+    >>> _unknown_key('posiiton', ('name', 'position'), 'the robot', {})
+    'unknown key; did you mean position? (keys of the robot: name, position)'
+    """
+    listing = f'(keys of {what}: {", ".join(keys)})'
+    if key in hints:
+        return f'{hints[key]} {listing}'
+    if key in _ALL_KEYS:
+        return f'does not apply to {what} {listing}'
+    close = difflib.get_close_matches(str(key), keys, n=1) or difflib.get_close_matches(
+        str(key), sorted(_ALL_KEYS), n=1
+    )
+    return f'unknown key; did you mean {close[0]}? {listing}' if close else f'unknown key {listing}'
+
+
+def _tag(entry: _Entry, body_size) -> Tag | None:
+    """The ``tag`` of the robot or the station; its problems are reported as ``tag.KEY``."""
+    data = entry.read('tag', _mapping)
+    if data is None:
+        return None
+    tag = _Entry(entry.report, entry.label, data, TAG_KEYS, 'a tag', prefix='tag.')
+    family = tag.read('family', _one_of, FAMILY_NAMES, f'one of {", ".join(FAMILY_NAMES)}')
+    tag_id = tag.read('id', _tag_id, family) if family is not None else None
+    side = tag.read('size', _number, True)
+    if side is not None and body_size is not None and side > min(body_size[:2]):
+        smaller = min(body_size[:2])
+        tag.problem('size', f"expected at most the body's smaller side, {smaller:g} m, got {side!r}")
+    entry.broken = entry.broken or tag.broken
+    return None if tag.broken else Tag(family, tag_id, side)
+
+
+_BODY_KEYS = {
+    # entry kind: (its keys, what it is called, why some other keys do not apply)
+    'robot': (ROBOT_KEYS, 'the robot', {'waypoints': 'does not apply: only humans walk'}),
+    'station': (STATION_KEYS, 'the station', {'speed': 'does not apply: the station does not move'}),
+    'static': (
+        STATIC_KEYS,
+        'a static object',
+        {**dict.fromkeys(HUMAN_KEYS[len(STATIC_KEYS) :], _HUMANS_ONLY), 'tag': _TAGS_ONLY},
+    ),
+    'human': (HUMAN_KEYS, 'a human', {'tag': _TAGS_ONLY}),
+}
+
+
+def _body(report: _Report, data, role: str, index: int = 0) -> tuple[str, Body] | None:
+    """The robot (``role`` 'robot'), the station ('station') or ``objects[index]`` ('object'),
+    with its label for messages; None when it is unusable (its problems are reported)."""
+    where = f'objects[{index}]' if role == 'object' else role
+    if not isinstance(data, dict):
+        report.add(report.entry(where), '', f'expected a mapping, got {data!r}')
+        return None
+    kind = data.get('kind', 'static') if role == 'object' else role
+    name = data.get('name', f'object{index}' if role == 'object' else role)
+    named = isinstance(data.get('name'), str) and name != '' and (role == 'object' or name != role)
+    noun = {'static': 'object', 'human': 'human'}.get(kind, role)
+    label = report.entry(f'{noun} {name!r}' if named else where)
+    if role == 'object' and kind not in KINDS:  # reported below; any object key may apply
+        keys, what, hints = HUMAN_KEYS, 'an object', {'tag': _TAGS_ONLY}
+    else:
+        keys, what, hints = _BODY_KEYS[kind]
+    entry = _Entry(report, label, data, keys, what, hints)
+    entry.read('name', _body_name, default=name)
+    if role == 'object':
+        entry.read('kind', _one_of, KINDS, 'static or human', default=kind)
+    position = entry.read('position', _vector, 2, '[x, y]')
+    size = entry.read('size', _vector, 3, '[x, y, z]', True)
+    values = {
+        'colour': entry.read('colour', _colour),
+        'yaw': entry.read('yaw', _number, default=0.0),
+    }
+    if role == 'robot':
+        values['speed'] = entry.read('speed', _number, True, default=0.4)
+    if kind == 'human':
+        values['waypoints'] = entry.read('waypoints', _points, missing='missing: the points a human walks to')
+        values['speed'] = entry.read('speed', _number, True, missing='missing: how fast a human walks, m/s')
+        for flag, default in (('loop', True), ('wait_for_robot', False), ('through_obstacles', False)):
+            values[flag] = entry.read(flag, _flag, default=default)
+    if role == 'object':
+        values['decoy'] = entry.read('decoy', _flag, default=False)
+    else:
+        values['tag'] = _tag(entry, size) if 'tag' in data else None
+    if entry.broken:
+        return None
+    return label, Body(name=name, position=position, size=size, kind=kind, **values)
+
+
+def _camera(report: _Report, data, index: int) -> tuple[str, Camera] | None:
+    """``vision_systems[index]`` with its label; None when it is unusable."""
+    where = f'vision_systems[{index}]'
+    if not isinstance(data, dict):
+        report.add(report.entry(where), '', f'expected a mapping, got {data!r}')
+        return None
+    name = data.get('name')
+    label = report.entry(f'vision_system {name!r}' if _is_node_name(name) else where)
+    entry = _Entry(report, label, data, CAMERA_KEYS, 'a vision system')
+    entry.read('name', _node_name)
+    position = entry.read('position', _vector, 3, '[x, y, z]')
+    if position is not None and position[2] <= 0:
+        entry.problem('position', f'expected a camera above the floor (z > 0), got {list(position)}')
+    fov = entry.read('fov_deg', _number)
+    if fov is not None and not 1.0 <= fov <= 170.0:
+        entry.problem('fov_deg', f'expected a vertical field of view between 1 and 170 degrees, got {fov!r}')
+    resolution = entry.read('resolution', _integers, 2, 16, 4096, '[width, height]', default=(800, 600))
+    below = None if position is None else (position[0], position[1], 0.0)
+    target = entry.read('target', _vector, 3, '[x, y, z]', default=below)
+    up = entry.read('up', _vector, 3, '[x, y, z]', default=(0.0, 1.0, 0.0))
     waypoints, speed = (), 0.0
     if 'waypoints' in data or 'speed' in data:
-        waypoints = r.waypoints(data.get('waypoints'), f'{key}.waypoints')
-        speed = r.number(data.get('speed'), f'{key}.speed', positive=True)
-    distortion = ()
-    if 'distortion' in data:
-        distortion = r.vector(data['distortion'], f'{key}.distortion', 5, '[k1, k2, p1, p2, k3]')
-        if any(abs(c) > 10.0 for c in distortion):
-            raise r.fail(
-                f'{key}.distortion',
-                'plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10',
-                list(distortion),
-            )
-    return Camera(
-        name=name,
-        position=position,
-        fov_deg=fov,
-        resolution=tuple(resolution),
-        target=target,
-        up=up,
-        waypoints=waypoints,
-        speed=speed,
-        distortion=distortion,
+        mount = 'missing: a moving mount needs both waypoints and speed'
+        waypoints = entry.read('waypoints', _points, missing=mount)
+        speed = entry.read('speed', _number, True, missing=mount)
+    distortion = entry.read('distortion', _vector, 5, '[k1, k2, p1, p2, k3]', default=())
+    if distortion and any(abs(c) > 10.0 for c in distortion):
+        entry.problem(
+            'distortion',
+            f'expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10, got {list(distortion)}',
+        )
+    if entry.broken:
+        return None
+    return label, Camera(name, position, fov, tuple(resolution), target, up, waypoints, speed, distortion)
+
+
+def _models(report: _Report, data) -> dict[str, tuple[str, object]]:
+    """Role -> (algorithm string, parsed parameters) of each colour model that parses."""
+    report.entry('colour_models')
+    try:
+        data = _mapping(data)
+    except _Invalid as error:
+        report.add('colour_models', '', error.message)
+        return {}
+    models = {}
+    for role in ROLES:
+        if role not in data:
+            report.add('colour_models', role, f'missing (roles: {", ".join(ROLES)})')
+    for role, text in data.items():
+        if not isinstance(text, str):
+            report.add('colour_models', str(role), f'expected an algorithm string, got {text!r}')
+            continue
+        try:
+            models[role] = (text, parse_algorithm(text).params)
+        except AlgorithmError as error:
+            report.add('colour_models', str(role), str(error))
+    return models
+
+
+# -- pass 2: whether the world is possible ----------------------------------------------------------
+def _n(value: float) -> str:
+    return f'{round(value, 3):g}'
+
+
+def _floor_text(floor) -> str:
+    return f'the floor (x 0..{_n(floor[0])}, y 0..{_n(floor[1])})'
+
+
+def _off_floor(point, footprint, floor) -> str | None:
+    """Why a body at ``point`` with ``footprint`` is not on the floor, or None."""
+    if not (0 <= point[0] <= floor[0] and 0 <= point[1] <= floor[1]):
+        return f'{list(point)} is outside {_floor_text(floor)}'
+    xs, ys = [p[0] for p in footprint], [p[1] for p in footprint]
+    past = max(-min(xs), max(xs) - floor[0], -min(ys), max(ys) - floor[1])
+    if past <= EDGE:
+        return None
+    return (
+        f'{list(point)} puts its footprint (x {_n(min(xs))}..{_n(max(xs))}, y {_n(min(ys))}..{_n(max(ys))}) '
+        f'past the edge of {_floor_text(floor)}: move it {_n(past)} m further in'
     )
 
 
-def _matches(model, colour) -> bool:
-    """Whether ``model`` finds an object in an image of one flat ``colour``."""
-    import numpy as np
+def _check_floor(report: _Report, bodies, floor) -> None:
+    """Every body, and a human at each of its waypoints, stands within the floor."""
+    for label, body in bodies:
+        reason = _off_floor(body.position, body.footprint(), floor)
+        if reason:
+            report.add(label, 'position', reason)
+        for i, point in enumerate(body.waypoints):
+            reason = _off_floor(point, box_footprint(point, body.size, body.yaw), floor)
+            if reason:
+                report.add(label, f'waypoints[{i}]', reason)
 
-    return bool(model.mask(np.full((1, 1, 3), colour, np.uint8)).any())
+
+def _check_overlaps(report: _Report, bodies) -> None:
+    """Bodies at their start poses may touch, not overlap; the later one in the file is named."""
+    shapes = [(label, Polygon(body.footprint())) for label, body in bodies]
+    for i, (label, shape) in enumerate(shapes):
+        for other, other_shape in shapes[:i]:
+            if shape.intersection(other_shape).area > AREA:
+                report.add(
+                    label, 'position', f'overlaps {other}: move one of them (bodies may touch, not overlap)'
+                )
+
+
+def _walk(human: Body) -> list[tuple[float, float]]:
+    """The points a human walks through in order, back to ``position`` when it loops."""
+    points: list[tuple[float, float]] = []
+    for point in (human.position, *human.waypoints):
+        if not points or point != points[-1]:
+            points.append(point)
+    if human.loop and len(points) > 2 and points[-1] != points[0]:
+        points.append(points[0])
+    return points
+
+
+def _check_walks(report: _Report, humans, statics) -> None:
+    """A human's walk keeps clear of the static objects unless it says ``through_obstacles: true``
+    (the simulation walks it through them). Its start pose is :func:`_check_overlaps`' business."""
+    boxes = [(label, Polygon(body.footprint())) for label, body in statics]
+    advice = 'or add through_obstacles: true if it should walk through'
+    for label, human in humans:
+        if human.through_obstacles:
+            continue
+        inside = set()  # points where it stands in a box: its walks to and from them are not reported
+        for i, point in [(None, human.position), *enumerate(human.waypoints)]:
+            shape = Polygon(box_footprint(point, human.size, human.yaw))
+            for other, box in boxes:
+                if shape.intersection(box).area > AREA:
+                    inside.add(point)
+                    if i is not None:  # the start is _check_overlaps' business
+                        message = f'{list(point)} puts it inside {other}: move it, {advice}'
+                        report.add(label, f'waypoints[{i}]', message)
+        points = _walk(human)
+        for a, b in itertools.pairwise(points):
+            if a in inside or b in inside:
+                continue
+            corners = box_footprint(a, human.size, human.yaw) + box_footprint(b, human.size, human.yaw)
+            swept = MultiPoint(corners).convex_hull
+            for other, box in boxes:
+                if swept.intersection(box).area > AREA:
+                    message = f'its walk from {list(a)} to {list(b)} crosses {other}: reroute it, {advice}'
+                    report.add(label, 'waypoints', message)
+
+
+_MISSED = {
+    'self': 'the robot would not find itself',
+    'station': 'the robot would not find its station',
+    'obstacle': 'the robot would not see this obstacle',
+    'human': 'the robot would not see this human',
+}
+_TAKEN_FOR = {'self': 'the robot', 'station': 'the station', 'obstacle': 'an obstacle', 'human': 'a human'}
+_OBSTACLES = {'obstacle', 'human'}
+"""Roles the robot plans around alike: the model of one may also find the bodies of the other."""
+_DECOY = ' (or decoy: true if that is on purpose)'
+
+
+def _finds(model: ColourModel | TagQuery, body: Body) -> bool:
+    """Whether ``model`` finds ``body``: its colour (a flat colour), or its tag."""
+    if isinstance(model, ColourModel):
+        return all(lo <= c <= hi for lo, c, hi in zip(model.lower, body.colour, model.upper, strict=True))
+    tag = body.tag
+    return tag is not None and tag.family == model.family and (not model.ids or tag.id in model.ids)
+
+
+def _check_models(report: _Report, models: dict, floor_colour, roles: dict) -> None:
+    """No colour model matches the floor; each body is found by its role's model and by no model of
+    another role. ``roles``: role -> [(label, body)]. Only ``colour`` and ``apriltag`` models say
+    what they find (``motion`` and plugins are not checked); decoys are left out. The robot plans
+    around obstacles and humans alike, so either of their models may find the bodies of either."""
+    for role, (algorithm, model) in models.items():
+        if isinstance(model, ColourModel) and floor_colour is not None and _finds(model, _flat(floor_colour)):
+            message = (
+                f'{list(floor_colour)} is matched by colour_models.{role} ({algorithm}); '
+                'the floor must be a colour that no colour model matches'
+            )
+            report.add('floor', 'colour', message)
+    checked = {
+        role: (algorithm, model)
+        for role, (algorithm, model) in models.items()
+        if role in ROLES and isinstance(model, ColourModel | TagQuery)
+    }
+    for role, (algorithm, model) in checked.items():
+        name = f'colour_models.{role} ({algorithm})'
+        key = 'colour' if isinstance(model, ColourModel) else 'tag'
+        own = [(label, body) for label, body in roles[role] if not body.decoy]
+        if key == 'tag' and role in _OBSTACLES:
+            if own:
+                report.add('colour_models', role, f'finds tags, and objects carry none: {_MISSED[role]}')
+            continue
+        alike = _OBSTACLES if role in _OBSTACLES else {role}
+        decoy = _DECOY if role in _OBSTACLES else ''
+        for label, body in own:
+            if any(_finds(checked[r][1], body) for r in alike if r in checked):
+                continue
+            if key == 'colour':
+                message = (
+                    f'{list(body.colour)} is not matched by {name}: {_MISSED[role]}; '
+                    f'change the colour or widen the model{decoy}'
+                )
+            elif body.tag is None:
+                wanted = model.family + (f' (id {", ".join(map(str, model.ids))})' if model.ids else '')
+                message = f'missing: {name} looks for a {wanted} tag: {_MISSED[role]}'
+            else:
+                message = (
+                    f'{body.tag.label} is not found by {name}: {_MISSED[role]}; change the tag or the model'
+                )
+            report.add(label, key, message)
+        for other, bodies in roles.items():
+            for label, body in bodies:
+                if other in alike or body.decoy or not _finds(model, body):
+                    continue
+                found = list(body.colour) if key == 'colour' else body.tag.label
+                remedy = (
+                    'change the colour or narrow the model'
+                    if key == 'colour'
+                    else 'list its ids in the model'
+                )
+                message = (
+                    f'{found} is matched by {name} too: it would be taken for {_TAKEN_FOR[role]}; '
+                    f'{remedy}{_DECOY if body.kind in KINDS else ""}'
+                )
+                report.add(label, key, message)
+
+
+def _flat(colour) -> Body:
+    """A body of one flat colour, for :func:`_finds`."""
+    return Body('', (0.0, 0.0), (1.0, 1.0, 1.0), colour)
+
+
+def _check_views(report: _Report, cameras, floor) -> None:
+    """Each camera sees some of the floor, from its position and from each waypoint of its mount."""
+    for label, camera in cameras:
+        forward = np.subtract(camera.target, camera.position)
+        if not forward.any():
+            report.add(label, 'target', 'equals position: the camera has no viewing direction')
+            continue
+        if np.linalg.norm(np.cross(forward / np.linalg.norm(forward), camera.up)) < 1e-9:  # as PinholeCamera
+            report.add(
+                label,
+                'up',
+                f'{list(camera.up)} does not point across the viewing direction: choose one that does',
+            )
+            continue
+        model = PinholeCamera.from_config(camera)
+        straight_down = camera.target == (camera.position[0], camera.position[1], 0.0)
+        stops = [('position' if straight_down else 'target', '', model)]
+        for i, (x, y) in enumerate(camera.waypoints):
+            stops.append((f'waypoints[{i}]', f'from {[x, y]} ', model.moved_to(x, y)))
+        for key, where, view in stops:
+            seen = view.floor_footprint(floor)
+            if len(seen) < 3 or Polygon(seen).area <= AREA:
+                message = (
+                    f'{where}the camera sees none of {_floor_text(floor)} and would register no field of '
+                    'view: move it over the floor or aim its target at it'
+                )
+                report.add(label, key, message)
+
+
+def _check_names(report: _Report, bodies, cameras) -> None:
+    """Body names are unique (objects may not take ``robot`` or ``station``); camera names too."""
+    seen: dict[str, str] = {}
+    for label, body in bodies:
+        if body.kind in KINDS and body.name in ('robot', 'station'):
+            report.add(label, 'name', f'{body.name!r} is reserved for the {body.name}; choose another name')
+        elif body.name in seen:
+            report.add(
+                label, 'name', f'{body.name!r} is the name of {seen[body.name]} too; names must be unique'
+            )
+        seen.setdefault(body.name, label)
+    names: set[str] = set()
+    for label, camera in cameras:
+        if camera.name in names:
+            report.add(
+                label, 'name', f'{camera.name!r} names another vision system too; names must be unique'
+            )
+        names.add(camera.name)
+
+
+def _check_tags(report: _Report, robot, station) -> None:
+    """Each tag (family and id) is on one body only."""
+    if robot and station and robot[1].tag and station[1].tag and robot[1].tag.label == station[1].tag.label:
+        message = (
+            f'{station[1].tag.label} is also {robot[0]}.tag; each tag (family and id) may be on one body only'
+        )
+        report.add(station[0], 'tag', message)
+
+
+# -- the loader -----------------------------------------------------------------------------------
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (plain YAML keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        keys = set()
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == 'tag:yaml.org,2002:merge':
+                continue  # a '<<: *anchor' merge may be overridden
+            key = self.construct_object(key_node)
+            if key in keys:
+                raise yaml.constructor.ConstructorError(
+                    'while reading a mapping', node.start_mark, f'{key!r} is given twice', key_node.start_mark
+                )
+            keys.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def _yaml_problem(error: yaml.YAMLError) -> str:
+    """A YAML syntax error on one line: where, what, and the construct it happened in."""
+    mark = getattr(error, 'problem_mark', None)
+    if mark is None:
+        return 'not valid YAML: ' + ' '.join(str(error).split())
+    text = f'not valid YAML: line {mark.line + 1}, column {mark.column + 1}: {error.problem}'
+    context = getattr(error, 'context_mark', None)
+    if error.context and context is not None:
+        text += f' ({error.context} at line {context.line + 1}, column {context.column + 1})'
+    return text
 
 
 def load_world(path: str | Path) -> World:
-    """Read and validate a world file.
+    """Read a world file and check that it makes sense.
 
-    :raises WorldError: naming the file, the key and what was expected.
+    :raises WorldError: listing every problem found, each naming the entry and the key.
     """
     path = Path(path)
-    r = _Reader(path)
     try:
         text = path.read_text()
     except OSError as error:
-        raise WorldError(f'{path}: cannot read the world file: {error.strerror}') from None
+        raise WorldError(path, [Problem('', '', f'cannot read the world file: {error.strerror}')]) from None
+    except UnicodeDecodeError as error:
+        message = f'cannot read the world file: not UTF-8 text (byte {error.start})'
+        raise WorldError(path, [Problem('', '', message)]) from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
     except yaml.YAMLError as error:
-        raise WorldError(f'{path}: not valid YAML: {error}') from None
-    data = r.mapping(data, '(top level)')
-    r.unknown(
-        data, '(top level)', ('floor', 'robot', 'station', 'objects', 'vision_systems', 'colour_models')
-    )
+        raise WorldError(path, [Problem('', '', _yaml_problem(error))]) from None
+    if not isinstance(data, dict):
+        message = f'expected a mapping with the keys {", ".join(TOP_KEYS)}, got {data!r}'
+        raise WorldError(path, [Problem('', '', message)])
+
+    report = _Report()
+    top = _Entry(report, '', data, TOP_KEYS, 'a world file')
+    floor_size, floor_colour = None, (255, 255, 255)
+    floor = top.read('floor', _mapping, default=None)
+    if floor is not None:
+        entry = _Entry(report, 'floor', floor, FLOOR_KEYS, 'the floor')
+        floor_size = entry.read('size', _vector, 2, '[x, y]', True)
+        floor_colour = entry.read('colour', _colour, default=floor_colour)
     for required in ('floor', 'robot', 'station', 'vision_systems', 'colour_models'):
         if required not in data:
-            raise WorldError(f'{path}: {required}: missing')
+            top.problem(required, 'missing')
+    robot = _body(report, data['robot'], 'robot') if 'robot' in data else None
+    station = _body(report, data['station'], 'station') if 'station' in data else None
+    items = top.read('objects', _list, False, default=[])
+    objects = [_body(report, item, 'object', i) for i, item in enumerate(items or [])]
+    items = top.read('vision_systems', _list, True, default=[])
+    cameras = [_camera(report, item, i) for i, item in enumerate(items or [])]
+    models = _models(report, data['colour_models']) if 'colour_models' in data else {}
 
-    floor = r.mapping(data['floor'], 'floor')
-    r.unknown(floor, 'floor', ('size', 'colour'))
-    if 'size' not in floor:
-        raise WorldError(f'{path}: floor.size: missing')
-    floor_size = r.vector(floor['size'], 'floor.size', 2, '[x, y]', positive=True)
-    floor_colour = r.colour(floor.get('colour', [255, 255, 255]), 'floor.colour')
+    # Pass 2, over the entries that read well.
+    bodies = [body for body in (robot, station, *objects) if body is not None]
+    cameras = [camera for camera in cameras if camera is not None]
+    statics = [(label, body) for label, body in bodies if body.kind == 'static']
+    humans = [(label, body) for label, body in bodies if body.kind == 'human']
+    _check_names(report, bodies, cameras)
+    _check_tags(report, robot, station)
+    if floor_size is not None:
+        _check_floor(report, bodies, floor_size)
+    _check_overlaps(report, bodies)
+    _check_walks(report, humans, statics)
+    roles = {
+        'self': [robot] if robot else [],
+        'station': [station] if station else [],
+        'obstacle': statics,
+        'human': humans,
+    }
+    _check_models(report, models, floor_colour, roles)
+    if floor_size is not None:
+        _check_views(report, cameras, floor_size)
 
-    robot_data = r.mapping(data['robot'], 'robot')
-    robot = _body(
-        r, {k: v for k, v in robot_data.items() if k != 'speed'}, 'robot', 'robot', False, tag_allowed=True
-    )
-    speed = r.number(robot_data.get('speed', 0.4), 'robot.speed', positive=True)
-    robot = Body(**{**robot.__dict__, 'speed': speed})
-    station = _body(r, data['station'], 'station', 'station', False, tag_allowed=True)
-    if robot.tag is not None and station.tag is not None and robot.tag.label == station.tag.label:
-        raise WorldError(
-            f'{path}: station.tag: {station.tag.label} is also robot.tag; '
-            'each tag (family and id) may be on one body only'
-        )
-
-    objects_data = data.get('objects') or []
-    if not isinstance(objects_data, list):
-        raise r.fail('objects', 'a list', objects_data)
-    objects = tuple(
-        _body(r, item, f'objects[{i}]', f'object{i}', True) for i, item in enumerate(objects_data)
-    )
-    names = [o.name for o in objects] + ['robot', 'station']
-    duplicates = sorted({n for n in names if names.count(n) > 1})
-    if duplicates:
-        raise WorldError(
-            f'{path}: objects: names must be unique (and not robot or station), repeated: '
-            f'{", ".join(duplicates)}'
-        )
-
-    cameras_data = data['vision_systems']
-    if not isinstance(cameras_data, list) or not cameras_data:
-        raise r.fail('vision_systems', 'a non-empty list', cameras_data)
-    cameras = tuple(_camera(r, item, f'vision_systems[{i}]') for i, item in enumerate(cameras_data))
-    camera_names = [c.name for c in cameras]
-    if len(set(camera_names)) != len(camera_names):
-        raise WorldError(f'{path}: vision_systems: names must be unique, got {camera_names}')
-
-    models = r.mapping(data['colour_models'], 'colour_models')
-    for role in ROLES:
-        if role not in models:
-            raise WorldError(f'{path}: colour_models.{role}: missing (roles: {", ".join(ROLES)})')
-    for role, text in models.items():
-        try:
-            model = parse_algorithm(text)
-        except AlgorithmError as error:
-            raise WorldError(f'{path}: colour_models.{role}: {error}') from None
-        if model.name == 'colour' and _matches(model.params, floor_colour):
-            raise WorldError(
-                f'{path}: floor.colour: {list(floor_colour)} is matched by colour_models.{role} '
-                f'({text}); the floor must be a colour that no colour model matches'
-            )
-
+    if report.problems:
+        raise WorldError(path, report.sorted())
     return World(
         path=path,
         floor_size=floor_size,
-        robot=robot,
-        station=station,
-        objects=objects,
-        vision_systems=cameras,
-        colour_models=dict(models),
+        robot=robot[1],
+        station=station[1],
+        objects=tuple(body for _, body in objects),
+        vision_systems=tuple(camera for _, camera in cameras),
+        colour_models=dict(data['colour_models']),
         floor_colour=floor_colour,
     )

@@ -3,15 +3,20 @@
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #                                 [--camera-source render|topic] [--rviz] [--record]
+#   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
 # the environment's ROS_MASTER_URI), then drvs_server, world_sim, one
 # vision_system per camera of WORLD, the scenario recorder and blind_robot, each
 # a plain background process with its log in DIR (default out/<world name>).
 # Waits until the robot reaches the station, fails, or the timeout (default 120 s)
-# passes, showing one updating line of state, distance to goal, re-plans and
-# elapsed time; then stops everything it started (also on Ctrl-C) and leaves
+# passes, showing its progress (state, distance to goal, re-plans, elapsed time:
+# one updating line on a terminal, a plain line every 5 s and on each change of
+# state otherwise); then stops everything it started (also on Ctrl-C) and leaves
 # DIR/summary.json and DIR/run.png. Exits 0 only if the robot reached the station.
+# Every process it starts is listed in DIR/pids (PID PGID START NAME) while it
+# runs, so that scripts/stop_scenario.sh DIR stops them if this script is killed;
+# a second run into the same DIR is refused while one is there.
 # With --stay, DRVS (server, world_sim, vision systems) keeps running after the
 # robot is done, until Ctrl-C, so it can be explored by hand (see the README).
 # With --camera-source topic, the simulation drives the vision systems like real
@@ -27,8 +32,31 @@
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-usage() {
-  echo "usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--rviz] [--record]" >&2
+stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--rviz] [--record]"
+help() {
+  cat <<EOF
+$synopsis
+Run one DRVS scenario: a ROS master, drvs_server, world_sim, one vision_system per camera
+of WORLD, the scenario recorder and blind_robot; stop them all at the end.
+  WORLD                  the world file, e.g. worlds/localisation.yaml
+  --timeout S            give up after S seconds (default 120)
+  --out DIR              logs, summary.json, trace.json, run.png and pids there (default out/<world name>)
+  --external-master      use the master at \$ROS_MASTER_URI (default http://127.0.0.1:11311), not a private one
+  --stay                 keep DRVS and the robot running after the robot is done, until Ctrl-C
+  --camera-source SOURCE render: each vision system renders its own view (default); topic: a sim_camera
+                         per camera publishes images, CameraInfo and tf, which its vision system reads
+  --rviz                 open RViz on the run with rviz/drvs.rviz (needs a display)
+  --record               record the run's topics into DIR/run.bag (drvs_report DIR/run.bag replays it)
+  -h, --help             print this help and exit
+Stop it with Ctrl-C; if this script was killed, $stop_script DIR stops what it started.
+Exit code: 0 the robot reached the station; 1 it failed, timed out or a node crashed;
+2 a usage error, no master at \$ROS_MASTER_URI, or DIR in use by another run; 130 interrupted.
+EOF
+}
+usage() {  # a usage error: the synopsis on stderr, exit 2
+  echo "$synopsis" >&2
+  echo "($0 --help describes the options)" >&2
   exit 2
 }
 
@@ -42,7 +70,7 @@ while [ $# -gt 0 ]; do
     --rviz) rviz=1; shift ;;
     --record) record=1; shift ;;
     --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
-    -h|--help) usage ;;
+    -h|--help) help; exit 0 ;;
     -*) echo "run_scenario: unknown option $1" >&2; usage ;;
     *) [ -z "$world" ] || usage; world=$1; shift ;;
   esac
@@ -52,6 +80,8 @@ done
 [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "run_scenario: --timeout needs seconds, got $timeout" >&2; exit 2; }
 [[ "$source" =~ ^(render|topic)$ ]] || { echo "run_scenario: --camera-source is render or topic, got $source" >&2; exit 2; }
 [ -x "$root/.venv/bin/python" ] || { echo "run_scenario: no .venv: run scripts/setup.sh (or make demo) first" >&2; exit 2; }
+# Every problem of the world file at once, before anything starts (nodes/drvs_check_world).
+checked=$("$root/.venv/bin/python" "$root/nodes/drvs_check_world" "$world" 2>&1) || { echo "$checked" >&2; exit 2; }
 if [ $rviz -eq 1 ]; then
   command -v rviz >/dev/null || bash "$root/scripts/setup.sh" --rviz || { echo "run_scenario: --rviz: installing rviz failed" >&2; exit 2; }
   [ -n "${DISPLAY:-}" ] || { echo "run_scenario: --rviz needs a display, and DISPLAY is not set" >&2; exit 2; }
@@ -61,84 +91,103 @@ world=$(cd "$(dirname "$world")" && pwd)/$(basename "$world")
 out=${out:-$root/out/$(basename "$world" .yaml)}
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
-rm -f "$out"/*.log "$out"/summary.json "$out"/run.png "$out"/status.line
-[ $record -eq 0 ] || rm -f "$out"/run.bag "$out"/run.bag.active
 
+# DIR/pids: every process this run starts (PID PGID START NAME, START its start time in
+# /proc/PID/stat), for scripts/stop_scenario.sh. A run whose processes still run keeps DIR;
+# a stale list is replaced. The lock on DIR makes checking and claiming one step.
+pidfile=$out/pids
+exec 8<"$out"
+flock 8
+running=$(bash "$root/scripts/stop_scenario.sh" --list "$out")
+if [ -n "$running" ]; then
+  script=$(grep -m1 ' run_scenario$' <<<"$running" || true)
+  if [ -n "$script" ]; then
+    echo "run_scenario: $out is in use by another run (run_scenario pid ${script%% *}); stop it with Ctrl-C there, or $stop_script $out" >&2
+  else
+    read -r pid name <<<"$running"
+    echo "run_scenario: $out is in use: a killed run left $(wc -l <<<"$running") process(es) running ($name pid $pid, ...); stop them with $stop_script $out" >&2
+  fi
+  exit 2
+fi
+read -r stat </proc/$$/stat
+read -r -a fields <<<"${stat##*) }"
+group=${fields[2]}  # this script's process group, which its nodes share (Ctrl-C reaches them all)
+echo "# run_scenario.sh: PID PGID START NAME of every process of the run in $out" >"$pidfile"
+note_pid() {  # note_pid NAME PID [PGID]: its line in DIR/pids
+  local stat fields
+  read -r stat 2>/dev/null <"/proc/$2/stat" || return 0  # gone already: nothing to stop
+  read -r -a fields <<<"${stat##*) }"
+  echo "$2 ${3:-$group} ${fields[19]} $1" >>"$pidfile"
+}
+note_pid run_scenario $$
+exec 8<&-
+
+tty=0
+[ ! -t 1 ] || tty=1  # the progress line is redrawn in place on a terminal only
+pids=() names=()
+stop_all() {  # stop every process of the run (scripts/stop_scenario.sh: newest first, the master last)
+  trap - EXIT INT TERM HUP
+  bash "$root/scripts/stop_scenario.sh" --quiet "$out" || true
+  wait 2>/dev/null || true
+}
+trap stop_all EXIT
+trap '[ $tty -eq 0 ] || echo; echo "run_scenario: interrupted" >&2; stop_all; exit 130' INT TERM HUP
+
+master_given=${ROS_MASTER_URI:-}
 if [ $external -eq 0 ]; then unset ROS_MASTER_URI; fi
 # shellcheck source=scripts/env.sh
 source "$root/scripts/env.sh"
 py="$root/.venv/bin/python"
 export PYTHONUNBUFFERED=1
 
-pids=() names=()
-start() {  # start NAME COMMAND...: a background process logging to $out/NAME.log
+master_answers() {  # master_answers SECONDS: whether the master at $ROS_MASTER_URI answers by then
+  "$py" - "$1" <<'EOF'
+import http.client, os, socket, sys, time, xmlrpc.client
+from xml.parsers.expat import ExpatError
+
+socket.setdefaulttimeout(1.0)
+deadline = time.monotonic() + float(sys.argv[1])
+while True:
+    try:
+        with xmlrpc.client.ServerProxy(os.environ['ROS_MASTER_URI']) as master:
+            answered = master.getPid('/run_scenario')[0] == 1
+    except (OSError, ValueError, http.client.HTTPException, xmlrpc.client.Error, ExpatError):
+        answered = False  # not (yet) a master there
+    if answered or time.monotonic() >= deadline:
+        sys.exit(0 if answered else 1)
+    time.sleep(0.1)
+EOF
+}
+if [ $external -eq 1 ] && ! master_answers 3; then
+  [ -n "$master_given" ] || note=" (ROS_MASTER_URI is not set: scripts/env.sh's default)"
+  echo "run_scenario: --external-master: no ROS master answers at $ROS_MASTER_URI${note:-}; start roscore there, or point ROS_MASTER_URI at a running master (without --external-master this script starts its own)" >&2
+  exit 2
+fi
+
+rm -f "$out"/*.log "$out"/summary.json "$out"/run.png "$out"/status.line
+[ $record -eq 0 ] || rm -f "$out"/run.bag "$out"/run.bag.active
+
+start() {  # start NAME COMMAND...: a background process logging to $out/NAME.log, listed in DIR/pids
   local name=$1; shift
   "$@" >"$out/$name.log" 2>&1 &
   pids+=($!) names+=("$name")
+  note_pid "$name" $!
 }
-
-stop_pids() {  # stop_pids PID...: in this order SIGINT (a clean shutdown), then SIGTERM, then SIGKILL
-  local pid deadline
-  [ $# -gt 0 ] || return 0
-  for sig in INT TERM KILL; do
-    local alive=0
-    for pid in "$@"; do
-      if kill -0 "$pid" 2>/dev/null; then kill -s "$sig" "$pid" 2>/dev/null || true; alive=1; fi
-    done
-    [ $alive -eq 1 ] || break
-    deadline=$((SECONDS + 5))
-    while [ $SECONDS -lt $deadline ]; do
-      alive=0
-      for pid in "$@"; do kill -0 "$pid" 2>/dev/null && alive=1; done
-      [ $alive -eq 1 ] || break
-      sleep 0.1
-    done
-  done
-}
-
-master_pid="" bag_pid=""
-stop_all() {
-  local i nodes=()
-  trap - EXIT INT TERM
-  # The nodes newest first; then the bag recorder, which so records them to their end
-  # and closes the bag (indexed run.bag, no run.bag.active); the master last.
-  for ((i = ${#pids[@]} - 1; i >= 0; i--)); do
-    [ "${pids[$i]}" = "$master_pid" ] || nodes+=("${pids[$i]}")
-  done
-  stop_pids "${nodes[@]}"
-  [ -z "$bag_pid" ] || stop_pids "$bag_pid"
-  [ -z "$master_pid" ] || stop_pids "$master_pid"
-  wait 2>/dev/null || true
-}
-trap stop_all EXIT
-trap 'echo; echo "run_scenario: interrupted" >&2; stop_all; exit 130' INT TERM
 
 if [ $external -eq 0 ]; then
   port=$("$py" -c 'from drvs.testing.harness import free_port; print(free_port())')
   export ROS_MASTER_URI="http://127.0.0.1:$port/"
   export ROS_HOME="$out/ros_home" ROS_LOG_DIR="$out/ros_log"
   start rosmaster rosmaster --core -p "$port"
-  master_pid=${pids[-1]}
+  master_answers 20 || { echo "run_scenario: the private rosmaster on port $port does not answer; see $out/rosmaster.log" >&2; exit 1; }
 fi
-# Wait (with a deadline) until the master answers.
-"$py" - <<'EOF' || { echo "run_scenario: no ROS master answers at $ROS_MASTER_URI" >&2; exit 1; }
-import os, sys
-from drvs.testing.harness import wait_for
-import xmlrpc.client
-def answers():
-    try:
-        with xmlrpc.client.ServerProxy(os.environ['ROS_MASTER_URI']) as master:
-            return master.getPid('/run_scenario')[0] == 1
-    except OSError:
-        return False
-wait_for(answers, 20.0, 'the ROS master')
-EOF
+echo "run_scenario: stop with Ctrl-C, or $stop_script $out if this script is killed"
 
 cameras=$("$py" -c 'import sys; from drvs.world import load_world
 print(" ".join(c.name for c in load_world(sys.argv[1]).vision_systems))' "$world")
 
 if [ $record -eq 1 ]; then
-  # Not in pids: stop_all stops it after every node. Ready once it subscribes to every topic.
+  # Listed in DIR/pids as bag_recorder: stopped after every node. Ready once it subscribes to every topic.
   topics="/drvs/registry /drvs/markers /world_sim/poses /world_sim/ground_truth /robot/status /robot/path
     /robot/map /robot/pose /robot/cmd_vel /scenario_recorder/samples /diagnostics /tf /tf_static /rosout"
   for camera in $cameras; do topics+=" /$camera/stats"; done
@@ -149,7 +198,7 @@ if [ $record -eq 1 ]; then
   [ -x "$record_bin" ] || { echo "run_scenario: --record needs Debian's python3-rosbag (scripts/setup.sh installs it)" >&2; exit 2; }
   # shellcheck disable=SC2086
   setsid "$record_bin" -O "$out/run.bag" __name:=bag_recorder $topics >"$out/bag_recorder.log" 2>&1 &
-  bag_pid=$!
+  note_pid bag_recorder $! $!
   "$py" - $topics <<'EOF' || { echo "run_scenario: rosbag record did not start; see $out/bag_recorder.log" >&2; exit 1; }
 import os, sys, xmlrpc.client
 from drvs.testing.harness import wait_for
@@ -206,6 +255,7 @@ fi
 echo "run_scenario: $(basename "$world") with ${cameras// /, } ($source); logs in $out"
 started=$SECONDS
 result=timeout
+shown_state="" shown_at=-5
 while [ $((SECONDS - started)) -lt "${timeout%.*}" ]; do
   if ! kill -0 "$robot_pid" 2>/dev/null; then
     if wait "$robot_pid"; then result=reached; else result=failed; fi
@@ -214,15 +264,23 @@ while [ $((SECONDS - started)) -lt "${timeout%.*}" ]; do
   for i in "${!pids[@]}"; do
     # Closing the RViz window is the user's choice, not a crash.
     if ! kill -0 "${pids[$i]}" 2>/dev/null && [ "${pids[$i]}" != "$robot_pid" ] && [ "${names[$i]}" != rviz ]; then
-      echo; echo "run_scenario: ${names[$i]} exited early; see $out/${names[$i]}.log" >&2
+      [ $tty -eq 0 ] || echo
+      echo "run_scenario: ${names[$i]} exited early; see $out/${names[$i]}.log" >&2
       result=crashed; break 2
     fi
   done
-  line=$(cat "$out/status.line" 2>/dev/null || echo "starting")
-  printf '\r\033[K%s | elapsed %3ds' "$line" $((SECONDS - started))
+  line=$(cat "$out/status.line" 2>/dev/null || echo "state starting")
+  elapsed=$((SECONDS - started))
+  if [ $tty -eq 1 ]; then
+    printf '\r\033[K%s | elapsed %3ds' "$line" $elapsed
+  elif [ "${line%% |*}" != "$shown_state" ] || [ $elapsed -ge $((shown_at + 5)) ]; then
+    # Not a terminal (a log file, a pipe): a plain line every 5 s and on each change of state.
+    echo "run_scenario: $line | elapsed ${elapsed}s"
+    shown_state=${line%% |*} shown_at=$elapsed
+  fi
   sleep 0.5
 done
-printf '\r\033[K'
+[ $tty -eq 0 ] || printf '\r\033[K'
 finished=$((SECONDS - started))
 
 # The recorder writes summary.json and run.png when it is told to stop.

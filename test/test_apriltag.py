@@ -477,14 +477,18 @@ def test_the_same_id_in_another_family_is_another_tag(tmp_path):
             "robot.tag.size: expected at most the body's smaller side, 0.3 m, got 0.31",
         ),
         ({'robot.tag.size': None}, 'robot.tag.size: missing'),
-        ({'robot.tag.colour': [0, 0, 0]}, 'robot.tag: unknown key(s) colour; allowed: family, id, size'),
+        (
+            {'robot.tag.colour': [0, 0, 0]},
+            'robot.tag.colour: does not apply to a tag (keys of a tag: family, id, size)',
+        ),
         (
             {'station.tag.id': 3},
             'station.tag: tag36h11:3 is also robot.tag; each tag (family and id) may be on one body only',
         ),
         (
             {'objects.0.tag': {'family': 'tag36h11', 'id': 9, 'size': 0.2}},
-            'objects[0].tag: only the robot and the station carry a tag',
+            "object 'crate'.tag: only the robot and the station carry a tag "
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
         ),
     ],
 )

@@ -1,7 +1,23 @@
-"""drvs_ask: one question to DRVS from a terminal, with the vision systems' outlines printed."""
+"""drvs_ask: one question to DRVS from a terminal, with the vision systems' outlines printed, and
+an exit code that tells found, nothing found, no coverage, refused and no server apart (no master
+and bad options: test_user_errors.py)."""
+
+import re
 
 import pytest
 
+import drvs.ros.ask as ask_module
+from drvs.ros.ask import (
+    EXIT_CODES,
+    FOUND,
+    NO_MASTER,
+    NO_SERVER,
+    NOT_COVERED,
+    NOTHING_FOUND,
+    REFUSED,
+    USAGE,
+    parse_args,
+)
 from drvs.testing import RosHarness, wait_for
 
 WORLD = 'test/worlds/small.yaml'
@@ -26,7 +42,7 @@ def drvs(ros: RosHarness):
 
 def test_drvs_ask_prints_the_acknowledgement_and_the_outlines(drvs: RosHarness):
     result = drvs.run(f'drvs_ask {STATION} --roi 0 0 4 3 --wait 5')
-    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.returncode == FOUND, result.stdout + result.stderr
     lines = result.stdout.splitlines()
     assert lines[0] == "accepted: True, vision_systems: 1, message: 'forwarded to 1 vision system'"
     assert lines[1].startswith('/vs2/detect_object_boundary (frame at ')
@@ -40,24 +56,52 @@ def test_drvs_ask_prints_the_acknowledgement_and_the_outlines(drvs: RosHarness):
 
 def test_drvs_ask_refuses_a_bad_algorithm_before_asking(ros: RosHarness):
     result = ros.run("drvs_ask 'colour:1,2'")
-    assert result.returncode == 2
+    assert result.returncode == USAGE
     assert 'algorithm: colour PARAMS must be 6 comma-separated integers' in result.stderr
 
 
 def test_drvs_ask_says_what_to_do_when_no_server_runs(ros: RosHarness):
     result = ros.run(f'drvs_ask {STATION} --timeout 1')
-    assert result.returncode == 2
+    assert result.returncode == NO_SERVER
     assert 'is DRVS running?' in result.stderr
 
 
-def test_drvs_ask_stops_at_once_on_an_invalid_request(drvs: RosHarness):
-    result = drvs.run(f'drvs_ask {STATION} --roi 2 0 1 1 --timeout 30')
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert result.stdout.splitlines()[0] == (
-        "accepted: False, vision_systems: 0, message: 'region_of_interest: min_x 2 is greater than max_x 1'"
+def test_drvs_ask_tells_nothing_found_no_coverage_and_a_refusal_apart(drvs: RosHarness):
+    # vs2 sees the right half of the 4 x 3 floor; nothing there is magenta.
+    nothing = drvs.run('drvs_ask colour:200,0,200,255,60,255 --roi 2 0 4 3 --wait 1')
+    assert nothing.returncode == NOTHING_FOUND, nothing.stdout + nothing.stderr
+    assert nothing.stdout.splitlines()[-1] == '0 of 1 vision system(s) called back within 1.0 s'
+    assert nothing.stderr == (
+        'drvs_ask: nothing found: 1 vision system(s) asked, none found anything within 1 s\n'
     )
-    assert 'refused (INVALID)' in result.stderr
-    assert 'retrying' not in result.stderr
+
+    nowhere = drvs.run(f'drvs_ask {STATION} --roi 20 20 21 21')
+    assert nowhere.returncode == NOT_COVERED, nowhere.stdout + nowhere.stderr
+    assert nowhere.stdout == (
+        "accepted: True, vision_systems: 0, message: 'no vision system covers the region of interest'\n"
+    )
+    assert nowhere.stderr == (
+        'drvs_ask: not asked: no vision system covers the region of interest '
+        '(`rostopic echo /drvs/registry` lists the fields of view)\n'
+    )
+
+    # A final refusal stops at once, with its status name.
+    refused = drvs.run('drvs_ask nosuch:1 --timeout 30')
+    assert refused.returncode == REFUSED, refused.stdout + refused.stderr
+    message = "algorithm: no registered vision system runs 'nosuch'; available: "
+    assert refused.stdout.startswith(f'accepted: False, vision_systems: 0, message: "{message}')
+    assert refused.stderr.startswith(f'drvs_ask: refused (UNSUPPORTED): {message}')
+    assert 'retrying' not in refused.stderr
+
+
+def test_the_exit_codes_are_the_same_in_help_and_in_the_docstring(capsys):
+    with pytest.raises(SystemExit):
+        parse_args(['--help'])
+    help_text = capsys.readouterr().out
+    for code, meaning in EXIT_CODES.items():
+        assert f'  {code:<3}  {meaning}\n' in help_text + '\n'
+        assert re.search(rf'^{code}\s+\S', ask_module.__doc__, re.MULTILINE), code
+    assert (FOUND, NOTHING_FOUND, USAGE, NOT_COVERED, REFUSED, NO_SERVER, NO_MASTER) == tuple(range(7))
 
 
 def test_drvs_ask_retries_while_rate_limited(ros: RosHarness):

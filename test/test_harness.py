@@ -59,7 +59,8 @@ def test_nothing_is_left_behind_when_tests_fail_or_time_out(tmp_path):
     )
     (tmp_path / 'conftest.py').write_text((REPO / 'test/conftest.py').read_text())
     session = uuid.uuid4().hex
-    env = {**__import__('os').environ, SESSION_VARIABLE: session}
+    # The stubborn grandchild ignores SIGINT and SIGTERM: a short grace gets to SIGKILL sooner.
+    env = {**__import__('os').environ, SESSION_VARIABLE: session, 'DRVS_TEST_STOP_GRACE': '1'}
     result = subprocess.run(
         [
             sys.executable,

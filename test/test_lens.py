@@ -33,6 +33,7 @@ WORLD = {
         {
             'name': 'crate',
             'colour': [0, 0, 220],
+            'decoy': True,  # blue like a station: found by the station model, on purpose
             **{k: list(v) if k != 'yaw' else v for k, v in CRATE.items()},
         },
         # a long, thin, flat strip along x, well off the image's centre line

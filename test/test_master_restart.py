@@ -388,6 +388,7 @@ def test_drvs_server_services_come_back_after_a_master_restart(ros, monkeypatch,
 SCENARIO_TIMEOUT = 150
 
 
+@pytest.mark.slow  # a whole scenario (about 30 s); the nodes' own restart tests run in make test
 def test_obstacles_scenario_reaches_the_station_across_a_master_restart(ros, request):
     with Trial('master', request.node.name, 'roscore restarted while the robot drives its scenario') as trial:
         _run_scenario_across_a_master_restart(ros, trial)

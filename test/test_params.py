@@ -1,19 +1,40 @@
-"""read_params and drvs.settings: ~parameters read one way, ranges checked in one place."""
+"""read_params and drvs.settings: ~parameters read one way, ranges checked in one place, every
+problem listed at once with where its value came from, unknown names warned about."""
 
 import dataclasses
+import doctest
 import math
 from dataclasses import dataclass
 
 import pytest
 
-from drvs.ros.params import read_params
+import drvs.ros.params
+import drvs.settings
+from drvs.ros.params import (
+    command_line_params,
+    origin_note,
+    private_param_names,
+    read_params,
+    unknown_param_warnings,
+    writable_folder,
+)
 from drvs.ros.recorder import RecorderSettings
 from drvs.ros.robot import RobotParams
 from drvs.ros.server import ServerSettings
 from drvs.ros.sim_camera import SimCameraParams
 from drvs.ros.vision_system import VisionSystemParams
 from drvs.ros.world_sim import WorldSimSettings
-from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, at_least, between, one_of, param
+from drvs.settings import (
+    NON_NEGATIVE,
+    POSITIVE,
+    REQUIRED,
+    ParamError,
+    Settings,
+    at_least,
+    between,
+    one_of,
+    param,
+)
 
 
 @dataclass(frozen=True)
@@ -42,7 +63,7 @@ def test_run_time_defaults_replace_the_dataclass_defaults_but_not_given_values()
 @pytest.mark.parametrize(
     'given, message',
     [
-        ({}, '~world: missing'),
+        ({}, '~world: required, not given (add _world:=VALUE to the command line)'),
         ({'world': 'w', 'rate': 'fast'}, "~rate: expected a number, got 'fast'"),
         ({'world': 'w', 'rate': True}, '~rate: expected a number, got True'),
         ({'world': 'w', 'workers': 2.5}, '~workers: expected an integer, got 2.5'),
@@ -161,3 +182,95 @@ def test_the_vision_system_source_defaults_to_render_with_a_world_else_topic():
 )
 def test_every_node_parameter_is_declared_with_a_meaning(cls):
     assert all(field.metadata.get('meaning') for field in dataclasses.fields(cls))
+
+
+# -- every problem at once, where a value came from, unknown names (issue 14) -----------------
+def test_every_problem_is_listed_at_once_types_and_ranges_alike():
+    with pytest.raises(ParamError) as error:
+        read_params(Declared, get=reading(lease='x', workers=0, quality=101))
+    assert str(error.value) == (
+        '~world: required, not given (add _world:=VALUE to the command line)\n'
+        "~lease: expected a number, got 'x'\n"
+        '~workers: must be at least 1, got 0\n'
+        '~quality: must be 1 to 100, got 101'
+    )
+    assert error.value.names == ('world', 'lease', 'workers', 'quality')
+    assert isinstance(error.value, ValueError)
+
+
+def test_a_value_not_from_the_command_line_says_where_it_came_from():
+    given = {'world': 'w', 'lease': -1, 'workers': 0}
+    with pytest.raises(ParamError) as error:
+        read_params(Declared, get=reading(**given), given={'world', 'lease'}, node='/srv')
+    assert str(error.value) == (
+        '~lease: must be positive, got -1.0\n~workers: must be at least 1, got 0'
+        + origin_note('/srv', 'workers')
+    )
+    assert origin_note('/srv', 'workers') == (
+        ' (from the parameter server, not from this command line: left by an earlier run, a launch file '
+        'or `rosparam set`; clear it with `rosparam delete /srv/workers`)'
+    )
+
+
+def test_a_rule_across_fields_is_annotated_with_the_origin_too():
+    with pytest.raises(ParamError) as error:
+        read_params(
+            ServerSettings,
+            get=reading(ejection_time=20, max_ejection_time=10),
+            given={'ejection_time'},
+            node='/drvs',
+        )
+    assert str(error.value) == (
+        '~max_ejection_time: must be at least ~ejection_time (20.0), got 10.0'
+        + origin_note('/drvs', 'max_ejection_time')
+    )
+
+
+def test_command_line_params_are_read_as_rospy_reads_them_and_bad_yaml_names_the_parameter():
+    argv = ['node', '_rate:=2', '__name:=n', 'topic:=other', '_cameras:=[vs1, vs2]', '_once:=yes']
+    assert command_line_params(argv) == {'rate': 2, 'cameras': ['vs1', 'vs2'], 'once': True}
+    with pytest.raises(ParamError) as error:
+        command_line_params(['node', '_rate:=[1,'])
+    assert (
+        str(error.value)
+        == "~rate: cannot read '[1,' as YAML (expected the node content, but found '<stream end>')"
+    )
+
+
+@pytest.mark.parametrize(
+    'names, given, warnings',
+    [
+        (
+            ['forward_timout', 'lease'],
+            None,
+            ['unknown parameter ~forward_timout (ignored): did you mean ~forward_timeout?'],
+        ),
+        (['zzz'], None, ['unknown parameter ~zzz (ignored): this node has no such parameter']),
+        (
+            ['leese'],
+            set(),
+            ['unknown parameter ~leese (ignored)' + origin_note('/drvs', 'leese') + ': did you mean ~lease?'],
+        ),
+        (['lease', 'workers'], None, []),
+    ],
+)
+def test_unknown_private_parameters_are_warnings_with_the_nearest_name(names, given, warnings):
+    assert unknown_param_warnings(ServerSettings, names, given, '/drvs') == warnings
+
+
+def test_private_param_names_are_the_first_level_under_the_node():
+    names = ['/drvs/lease', '/drvs/nested/key', '/drvs_other/x', '/use_sim_time', '/drvs']
+    assert private_param_names('/drvs', names) == {'lease', 'nested'}
+
+
+def test_a_folder_parameter_is_created_or_refused_naming_it(tmp_path):
+    assert writable_folder('out', str(tmp_path / 'a' / 'b')) == tmp_path / 'a' / 'b'
+    (tmp_path / 'file').write_text('')
+    with pytest.raises(ParamError) as error:
+        writable_folder('out', str(tmp_path / 'file' / 'sub'))
+    assert str(error.value) == f'~out: cannot write to the folder {tmp_path}/file/sub: Not a directory'
+
+
+@pytest.mark.parametrize('module', [drvs.settings, drvs.ros.params])
+def test_doctests(module):
+    assert doctest.testmod(module).failed == 0

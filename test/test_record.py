@@ -250,9 +250,15 @@ def test_a_recorded_scenario_replays_and_regenerates_its_summary(ros: RosHarness
     )
     assert runner.process.returncode == 0, logs
     assert not (out / 'run.bag.active').exists(), logs
+    both = {'/vs1/detect_object_boundary', '/vs2/detect_object_boundary'}
     with rosbag.Bag(str(out / 'run.bag')) as bag:  # opens only a closed, indexed bag
         counts = {topic: info.message_count for topic, info in bag.get_type_and_topic_info().topics.items()}
         finals = [msg.final for _, msg, _ in bag.read_messages(topics=['/scenario_recorder/samples'])]
+        start = bag.get_start_time()
+        registries = [
+            (time.to_sec() - start, {entry.service_name for entry in msg.vision_systems})
+            for _, msg, time in bag.read_messages(topics=['/drvs/registry'])
+        ]
     assert [topic for topic in REQUIRED_TOPICS if not counts.get(topic)] == [], counts
     assert finals[-1] is True and finals.count(True) == 1, finals
 
@@ -264,11 +270,15 @@ def test_a_recorded_scenario_replays_and_regenerates_its_summary(ros: RosHarness
     assert live['reached'] is True and live['cpu'] and live['elapsed'] > 0
     assert (again / 'run.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
-    # rosbag play brings the latched registry and the cameras' static tf back, for RViz.
-    ros.spawn('rosbag_play', ['rosbag', 'play', '--keep-alive', '--rate', '20', str(out / 'run.bag')])
-    both = {'/vs1/detect_object_boundary', '/vs2/detect_object_boundary'}
+    # rosbag play brings the latched registry and the cameras' static tf back, for RViz. The
+    # bag ends with the cameras unregistering at shutdown: play it up to the registry with both.
+    first = next(i for i, (_, names) in enumerate(registries) if names == both)
+    after = registries[first + 1][0] if first + 1 < len(registries) else registries[first][0] + 2.0
+    duration = registries[first][0] + min((after - registries[first][0]) / 2, 1.0)
+    play = ['rosbag', 'play', '--keep-alive', '--rate', '20', '--duration', f'{duration:.3f}']
+    ros.spawn('rosbag_play', [*play, str(out / 'run.bag')])
 
-    def registry_of_both():  # the bag has the registry before and after vs1 registered
+    def registry_of_both():
         return {entry['service_name'] for entry in echo(ros, '/drvs/registry')['vision_systems']} == both
 
     wait_for(registry_of_both, 30.0, 'the replayed /drvs/registry with vs1 and vs2', on_timeout=ros.describe)

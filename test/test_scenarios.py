@@ -54,6 +54,11 @@ def run_scenario(ros: RosHarness, world: str, camera_source: str = 'render') -> 
     )
     summary_path = out / 'summary.json'
     assert summary_path.exists(), f'no summary.json\n{logs}'
+    # Its output goes to a file, not a terminal: plain progress lines, no redrawing.
+    output = runner.log_path.read_bytes()
+    assert b'\r' not in output and b'\x1b' not in output, output
+    assert b'run_scenario: state ' in output, output
+    assert not (out / 'pids').exists(), 'DIR/pids left after the run'
     assert (out / 'run.png').read_bytes()[:4] == b'\x89PNG'
     return code, json.loads(summary_path.read_text()), json.loads((out / 'trace.json').read_text()), logs
 

@@ -305,7 +305,7 @@ def test_cameras_are_a_comma_separated_string_or_a_list(cameras, names):
             f"~cameras: no vision system named 'vs9' in {WORLD} (known: vs1, vs2, rover)",
         ),
         ({'cameras': [1, 2]}, '~cameras: expected a string or a list of strings, got [1, 2]'),
-        ({'world': None}, '~world: missing'),
+        ({'world': None}, '~world: required, not given (add _world:=VALUE to the command line)'),
         (
             {'world': 'test/worlds/none.yaml'},
             'test/worlds/none.yaml: cannot read the world file: No such file or directory',

@@ -1,8 +1,12 @@
 """World files: the loader's values, defaults, and its refusals naming file, key and expectation."""
 
+import copy
+import doctest
+
 import pytest
 import yaml
 
+import drvs.world
 from drvs.world import WorldError, load_world
 
 BASE = {
@@ -43,19 +47,26 @@ def write(tmp_path, data):
     return path
 
 
+def edited(world, **changes):
+    """A copy of ``world`` with ``changes``: 'station.position' or 'objects.0.kind' -> value
+    (None: the key removed)."""
+    data = copy.deepcopy(world)
+    for path, value in changes.items():
+        *parents, last = path.split('.')
+        node = data
+        for key in parents:
+            node = node[int(key)] if isinstance(node, list) else node[key]
+        last = int(last) if isinstance(node, list) else last
+        if value is None:
+            del node[last]
+        else:
+            node[last] = value
+    return data
+
+
 def changed(path_of_key, value):
     """BASE with one key replaced (value None: removed); path_of_key like 'objects.0.size'."""
-    data = yaml.safe_load(yaml.safe_dump(BASE))
-    *parents, last = path_of_key.split('.')
-    node = data
-    for key in parents:
-        node = node[int(key)] if isinstance(node, list) else node[key]
-    last = int(last) if isinstance(node, list) else last
-    if value is None:
-        del node[last]
-    else:
-        node[last] = value
-    return data
+    return edited(BASE, **{path_of_key: value})
 
 
 def test_a_world_loads_with_defaults(tmp_path):
@@ -103,58 +114,80 @@ def test_a_camera_lens_is_read_as_plumb_bob_coefficients(tmp_path):
         (
             'objects.0.size',
             [0.4, 0.6],
-            'objects[0].size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]',
+            "object 'box1'.size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]",
         ),
-        ('objects.0.kind', 'robot', "objects[0].kind: expected static or human, got 'robot'"),
-        ('objects.1.loop', 'no', "objects[1].loop: expected true or false, got 'no'"),
-        ('objects.0.loop', False, 'objects[0].loop: only humans walk; loop applies to kind human'),
+        ('objects.0.kind', 'robot', "object 'box1'.kind: expected static or human, got 'robot'"),
+        ('objects.1.loop', 'no', "human 'walker'.loop: expected true or false, got 'no'"),
+        (
+            'objects.0.loop',
+            False,
+            "object 'box1'.loop: applies to humans only: add kind: human to make it walk "
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
+        ),
         (
             'objects.0.wait_for_robot',
             True,
-            'objects[0].wait_for_robot: only humans walk; wait_for_robot applies to kind human',
+            "object 'box1'.wait_for_robot: applies to humans only: add kind: human to make it walk "
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
         ),
-        ('objects.1.speed', None, 'objects[1]: a human needs waypoints (2 or more) and a positive speed'),
+        ('objects.1.speed', None, "human 'walker'.speed: missing: how fast a human walks, m/s"),
         (
             'objects.1.waypoints',
             [[3.0, 0.5]],
-            'objects[1].waypoints: expected a list of at least 2 points [[x, y], ...], got [[3.0, 0.5]]',
+            "human 'walker'.waypoints: expected a list of at least 2 points [[x, y], ...], got [[3.0, 0.5]]",
+        ),
+        (
+            'objects.1.waypoints',
+            [[3.0, 0.5], [3.0, 'x']],
+            "human 'walker'.waypoints[1]: expected 2 numbers [x, y], got [3.0, 'x']",
         ),
         (
             'objects.0.name',
             'walker',
-            'objects: names must be unique (and not robot or station), repeated: walker',
+            "human 'walker'.name: 'walker' is the name of object 'walker' too; names must be unique",
+        ),
+        (
+            'objects.0.name',
+            'station',
+            "object 'station'.name: 'station' is reserved for the station; choose another name",
         ),
         (
             'vision_systems.0.position',
             [2.0, 1.5, 0.0],
-            'vision_systems[0].position: expected a camera above the floor (z > 0), got [2.0, 1.5, 0.0]',
+            "vision_system 'vs1'.position: expected a camera above the floor (z > 0), got [2.0, 1.5, 0.0]",
         ),
         (
             'vision_systems.0.resolution',
             [800],
-            'vision_systems[0].resolution: expected 2 integers 16-4096 [width, height], got [800]',
+            "vision_system 'vs1'.resolution: expected 2 integers 16-4096 [width, height], got [800]",
         ),
         (
             'vision_systems.0.fov_deg',
             180,
-            'vision_systems[0].fov_deg: expected a vertical field of view between 1 and 170 degrees, '
+            "vision_system 'vs1'.fov_deg: expected a vertical field of view between 1 and 170 degrees, "
             'got 180.0',
         ),
         (
             'vision_systems.0.speed',
             0.5,
-            'vision_systems[0].waypoints: expected a list of at least 2 points ' '[[x, y], ...], got None',
+            "vision_system 'vs1'.waypoints: missing: a moving mount needs both waypoints and speed",
+        ),
+        (
+            'vision_systems.0.name',
+            'vs-1',
+            'vision_systems[0].name: expected a ROS node name (letters, digits, _; starting with a letter), '
+            "got 'vs-1'",
         ),
         (
             'vision_systems.0.distortion',
             [-0.2, 0.05],
-            'vision_systems[0].distortion: expected 5 numbers [k1, k2, p1, p2, k3], got [-0.2, 0.05]',
+            "vision_system 'vs1'.distortion: expected 5 numbers [k1, k2, p1, p2, k3], got [-0.2, 0.05]",
         ),
         (
             'vision_systems.0.distortion',
             [-20.0, 0, 0, 0, 0],
-            'vision_systems[0].distortion: expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within '
-            '+-10, got [-20.0, 0.0, 0.0, 0.0, 0.0]',
+            "vision_system 'vs1'.distortion: expected plumb_bob coefficients [k1, k2, p1, p2, k3], each "
+            'within +-10, got [-20.0, 0.0, 0.0, 0.0, 0.0]',
         ),
         ('colour_models.human', None, 'colour_models.human: missing (roles: self, station, obstacle, human)'),
         (
@@ -166,30 +199,72 @@ def test_a_camera_lens_is_read_as_plumb_bob_coefficients(tmp_path):
         (
             'lights',
             'on',
-            'unknown key(s) lights; allowed: floor, robot, station, objects, vision_systems, '
-            'colour_models',
+            'lights: unknown key (keys of a world file: floor, robot, station, objects, vision_systems, '
+            'colour_models)',
         ),
+        ('vision_systems', None, 'vision_systems: missing'),
+        ('objects', {'box': 1}, "objects: expected a list, got {'box': 1}"),
     ],
 )
-def test_bad_worlds_are_refused_naming_file_and_key(tmp_path, key, value, message):
+def test_bad_worlds_are_refused_naming_file_entry_and_key(tmp_path, key, value, message):
     path = write(tmp_path, changed(key, value))
     with pytest.raises(WorldError) as error:
         load_world(path)
-    prefix = f'{path}: ' + ('(top level): ' if key == 'lights' else '')
-    assert str(error.value) == prefix + message
+    assert str(error.value) == f'{path}: {message}'
+    assert isinstance(error.value, ValueError)  # callers that catch ValueError keep working
+    assert [str(problem) for problem in error.value.problems] == [message]
 
 
-def test_a_missing_file_and_bad_yaml_are_named(tmp_path):
+def test_a_missing_file_is_named(tmp_path):
     with pytest.raises(WorldError) as error:
         load_world(tmp_path / 'none.yaml')
     assert (
         str(error.value) == f'{tmp_path / "none.yaml"}: cannot read the world file: No such file or directory'
     )
+
+
+@pytest.mark.parametrize(
+    'text, message',
+    [
+        (
+            'floor: [',
+            "not valid YAML: line 1, column 9: expected the node content, but found '<stream end>' "
+            '(while parsing a flow node at line 1, column 9)',
+        ),
+        (
+            'floor: {size: [4, 3]}\nfloor: {size: [5, 3]}\n',
+            "not valid YAML: line 2, column 1: 'floor' is given twice (while reading a mapping at line 1, "
+            'column 1)',
+        ),
+        (
+            '',
+            'expected a mapping with the keys floor, robot, station, objects, vision_systems, colour_models, '
+            'got None',
+        ),
+    ],
+)
+def test_bad_yaml_is_refused_in_one_line(tmp_path, text, message):
     path = tmp_path / 'bad.yaml'
-    path.write_text('floor: [')
+    path.write_text(text)
     with pytest.raises(WorldError) as error:
         load_world(path)
-    assert str(error.value).startswith(f'{path}: not valid YAML: ')
+    assert str(error.value) == f'{path}: {message}'
+
+
+def test_keys_merged_from_an_anchor_may_be_overridden(tmp_path):
+    data = changed('objects', None)
+    text = yaml.safe_dump(data) + (
+        'objects:\n'
+        '- &box {name: b1, position: [1.0, 0.5], size: [0.4, 0.4, 0.5], colour: [60, 60, 60]}\n'
+        '- {<<: *box, name: b2, position: [2.0, 0.5]}\n'
+    )
+    path = tmp_path / 'world.yaml'
+    path.write_text(text)
+    world = load_world(path)
+    assert [(o.name, o.position, o.size) for o in world.objects] == [
+        ('b1', (1.0, 0.5), (0.4, 0.4, 0.5)),
+        ('b2', (2.0, 0.5), (0.4, 0.4, 0.5)),
+    ]
 
 
 def test_an_unknown_camera_is_named(tmp_path):
@@ -197,3 +272,7 @@ def test_an_unknown_camera_is_named(tmp_path):
     with pytest.raises(WorldError) as error:
         world.camera('vs9')
     assert str(error.value) == f"{world.path}: vision_systems: no entry named 'vs9' (known: vs1)"
+
+
+def test_doctests():
+    assert doctest.testmod(drvs.world).failed == 0

@@ -113,7 +113,7 @@ from drvs.ros.service_client import (
     UnknownService,
     probe_service,
 )
-from drvs.settings import NON_NEGATIVE, POSITIVE, Settings, at_least, param
+from drvs.settings import NON_NEGATIVE, POSITIVE, ParamError, Settings, at_least, param
 from drvs.srv import (
     CallbackCoordinates,
     DetectObjectBoundary,
@@ -190,9 +190,9 @@ class ServerSettings(Settings):
     def __post_init__(self):
         super().__post_init__()
         if not self.max_ejection_time >= self.ejection_time:
-            raise ValueError(
-                f'~max_ejection_time: must be at least ~ejection_time ({self.ejection_time!r}), '
-                f'got {self.max_ejection_time!r}'
+            raise ParamError(
+                'max_ejection_time',
+                f'must be at least ~ejection_time ({self.ejection_time!r}), got {self.max_ejection_time!r}',
             )
 
     @classmethod

@@ -70,7 +70,7 @@ from drvs.ros.params import read_params
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
-from drvs.settings import POSITIVE, REQUIRED, Settings, between, one_of, param
+from drvs.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
 from drvs.simulation import mount_position
 from drvs.world import Camera, load_world
 
@@ -108,15 +108,15 @@ class SimCameraParams(Settings):
 def selected_cameras(world, names: tuple[str, ...]) -> tuple[Camera, ...]:
     """The world's vision systems named in ``~cameras`` (all of them for none).
 
-    :raises ValueError: naming the unknown camera and the known ones.
+    :raises ParamError: naming the unknown camera and the known ones.
     """
     if not names:
         return tuple(world.vision_systems)
     known = [camera.name for camera in world.vision_systems]
     for name in names:
         if name not in known:
-            raise ValueError(
-                f'~cameras: no vision system named {name!r} in {world.path} (known: {", ".join(known)})'
+            raise ParamError(
+                'cameras', f'no vision system named {name!r} in {world.path} (known: {", ".join(known)})'
             )
     return tuple(world.camera(name) for name in dict.fromkeys(names))
 

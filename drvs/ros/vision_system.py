@@ -123,7 +123,7 @@ from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame
-from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, at_least, one_of, param
+from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, ParamError, Settings, at_least, one_of, param
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -262,7 +262,9 @@ class VisionSystemParams(Settings):
             object.__setattr__(self, 'source', 'render' if self.world else 'topic')
         super().__post_init__()
         if self.source == 'render' and not self.world:
-            raise ValueError('~world: required with ~source render (or use ~source topic and a camera topic)')
+            raise ParamError(
+                'world', 'required with ~source render (or use ~source topic and a camera topic)'
+            )
 
     @classmethod
     def from_rosparam(cls) -> VisionSystemParams:

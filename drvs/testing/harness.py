@@ -88,7 +88,11 @@ def processes_of_session(session: str) -> list[int]:
     return found
 
 
-def _stop_group(process: subprocess.Popen, grace: float = 5.0) -> None:
+STOP_GRACE = float(os.environ.get('DRVS_TEST_STOP_GRACE', '5'))
+"""Seconds a process gets after SIGINT, and again after SIGTERM, before the next signal."""
+
+
+def _stop_group(process: subprocess.Popen, grace: float = STOP_GRACE) -> None:
     """SIGINT, wait, SIGTERM, wait, SIGKILL the process group of ``process``."""
     for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, grace), (signal.SIGKILL, grace)):
         if process.poll() is not None:
@@ -148,10 +152,17 @@ class NodeProcess:
         return f'--- {self.name} ({status}), {self.log_path} ---\n{self.log()}'
 
     def interrupt(self, timeout: float = 10.0) -> int:
-        """Send SIGINT (Ctrl-C) only and wait for a clean exit; return the exit code."""
+        """Send SIGINT (Ctrl-C) only and wait for a clean exit; return the exit code.
+
+        :raises WaitTimeout: with the node's log, if it is still running after ``timeout``.
+        """
         if self.running():
             os.killpg(self.process.pid, signal.SIGINT)
-        return self.process.wait(timeout)
+        try:
+            return self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            message = f'{self.name} still runs {timeout:g} s after SIGINT\n{self.describe()}'
+            raise WaitTimeout(message) from None
 
     def stop(self) -> None:
         _stop_group(self.process)

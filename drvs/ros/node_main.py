@@ -1,0 +1,200 @@
+"""How every DRVS node starts: find the master, ``init_node``, read the settings, build the node.
+
+A user's mistake ends the node with one message on stderr (and /rosout once the
+node is up), or one block listing every problem, and exit code 2
+(:data:`USER_ERROR`), never a traceback: a wrong or missing parameter (named,
+with where its value came from, :mod:`drvs.ros.params`), a world file that cannot
+be used (:class:`drvs.world.WorldError`), a file or folder that cannot be read or
+written, no ROS master. Anything else is a bug and keeps its traceback. A private
+parameter the node does not know is a warning with the nearest known name.
+
+A node's executable is then a few lines::
+
+    def main() -> int:
+        return node_main('drvs', ServerSettings, DrvsServer)
+
+``build(settings)`` constructs the node (no blocking work: its errors are the
+user's); ``run(node)`` starts and serves it and returns the exit code, by default
+:func:`spin`.
+"""
+
+from __future__ import annotations
+
+import http.client
+import os
+import sys
+import time
+import xmlrpc.client
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import rosgraph
+import rospy
+
+from drvs.ros.master_watch import watch_master
+from drvs.ros.params import (
+    command_line_params,
+    origin_note,
+    private_param_names,
+    read_params,
+    unknown_param_warnings,
+)
+from drvs.ros.service_client import TimeoutTransport
+from drvs.settings import ParamError
+
+__all__ = [
+    'MASTER_TIMEOUT',
+    'USER_ERROR',
+    'NoMaster',
+    'error_block',
+    'master_uri',
+    'node_main',
+    'spin',
+    'wait_for_master',
+]
+
+USER_ERROR = 2
+"""Exit code of a node stopped by a user's mistake (bad parameter, world file, folder, no master)."""
+
+INTERRUPTED = 130
+"""Exit code of a node stopped (Ctrl-C, SIGTERM) before it finished starting, as a shell reports it."""
+
+MASTER_TIMEOUT = 10.0
+"""Seconds a node waits for the ROS master before it gives up."""
+
+USER_ERRORS = (ValueError, OSError)
+"""What ``build`` raises for a user's mistake: ValueError (ParamError, WorldError), OSError (a file)."""
+
+
+class NoMaster(Exception):
+    """No ROS master answered; the message says at which URI and what to do."""
+
+
+def master_uri() -> str:
+    """The master's URI: ``__master:=`` on the command line, else ``ROS_MASTER_URI``, else rospy's default.
+
+    :raises NoMaster: for a malformed ``__master:=``.
+    """
+    try:
+        return rosgraph.get_master_uri()
+    except ValueError as error:
+        raise NoMaster(str(error)) from None
+
+
+def wait_for_master(timeout: float, uri: str | None = None) -> str:
+    """Wait until the master at ``uri`` (default ``ROS_MASTER_URI``) answers; return its URI.
+
+    :raises NoMaster: after ``timeout`` seconds, naming the URI tried and how to fix it.
+    """
+    unset = ''
+    if uri is None:
+        uri = master_uri()
+        if 'ROS_MASTER_URI' not in os.environ:
+            unset = "; ROS_MASTER_URI is not set, so that is rospy's default"
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            transport = TimeoutTransport(max(0.1, min(2.0, left)))
+            with xmlrpc.client.ServerProxy(uri, transport=transport) as master:
+                code, message, _ = master.getPid('/drvs_master_check')
+            if code == 1:
+                return uri
+            problem = f'it answered {message!r}'
+        except (OSError, http.client.HTTPException, xmlrpc.client.Error, ValueError) as error:  # a bad URI
+            problem = getattr(error, 'strerror', None) or str(error)
+        if time.monotonic() >= deadline:
+            raise NoMaster(
+                f'no ROS master at {uri} ({problem}; tried for {timeout:g} s{unset}): '
+                'start one with `roscore`, or `source scripts/env.sh`, or set ROS_MASTER_URI '
+                "to the running master's URI"
+            )
+        time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+
+
+def error_block(prog: str, error: BaseException) -> str:
+    """``prog: message`` for a one-line error; ``prog:`` and the lines indented for several."""
+    if isinstance(error, OSError) and error.strerror:
+        text = f'{error.filename}: {error.strerror}' if error.filename else error.strerror
+    else:
+        text = str(error) or type(error).__name__
+    lines = text.splitlines()
+    if len(lines) == 1:
+        return f'{prog}: {lines[0]}'
+    return f'{prog}:\n' + '\n'.join(f'  {line}' for line in lines)
+
+
+def spin(node) -> int:
+    """Start ``node`` and serve until shutdown; 1 if one of its background loops failed, else 0."""
+    node.start()
+    rospy.spin()
+    return 1 if node.guard.failure else 0  # a background loop failed: logged with its traceback
+
+
+def node_main(
+    name: str,
+    settings_cls,
+    build: Callable,
+    *,
+    run: Callable[[object], int] = spin,
+    defaults: Mapping[str, object] | Callable[[], Mapping[str, object]] | None = None,
+    anonymous: bool = False,
+    disable_signals: bool = False,
+    master_timeout: float = MASTER_TIMEOUT,
+    no_master_code: int = USER_ERROR,
+    watch: bool = True,
+    prog: str | None = None,
+) -> int:
+    """Run a node: its exit code, :data:`USER_ERROR` after one clean message on a user's mistake.
+
+    :param name: the node's default name (``__name:=`` replaces it).
+    :param settings_cls: its settings dataclass, read with :func:`drvs.ros.params.read_params`.
+    :param build: ``build(settings)``: the node, constructed; what it raises of
+        :data:`USER_ERRORS` is the user's mistake.
+    :param run: ``run(node)``: starts and serves the node, returns the exit code.
+    :param defaults: field defaults known only once the node is up (or a function giving them).
+    :param master_timeout: seconds to wait for the master; then ``no_master_code``.
+    :param watch: register again after a master restart (:func:`drvs.ros.master_watch.watch_master`).
+    :param prog: the name messages start with (default: the executable's).
+    """
+    prog = prog or Path(sys.argv[0]).name
+    try:
+        given = command_line_params()
+    except ValueError as error:  # a `_name:=value` that is not YAML
+        print(error_block(prog, error), file=sys.stderr)
+        return USER_ERROR
+    try:
+        wait_for_master(master_timeout)
+    except NoMaster as error:
+        print(error_block(prog, error), file=sys.stderr)
+        return no_master_code
+    try:
+        rospy.init_node(name, anonymous=anonymous, disable_signals=disable_signals)
+    except rospy.ROSInitException as error:  # stopped (Ctrl-C, SIGTERM) while registering
+        print(error_block(prog, error), file=sys.stderr)
+        return INTERRUPTED
+    try:
+        if watch:
+            watch_master()  # registers again after a master restart (ros/ros_comm#185)
+        node_name = rospy.get_name()
+        private = private_param_names(node_name, rospy.get_param_names())
+        for warning in unknown_param_warnings(settings_cls, private, given, node_name):
+            rospy.logwarn('%s: %s', prog, warning)
+        try:
+            settings = read_params(settings_cls, defaults() if callable(defaults) else defaults, given=given)
+            try:
+                node = build(settings)
+            except ParamError as error:  # a parameter found wrong while building: where it came from
+                raise error.annotated(
+                    lambda param: origin_note(node_name, param)
+                    if param in private and param not in given
+                    else ''
+                ) from None
+        except USER_ERRORS as error:
+            rospy.logfatal('%s', error_block(prog, error))
+            rospy.signal_shutdown('user error')
+            return USER_ERROR
+        return run(node)
+    finally:
+        if disable_signals:
+            rospy.signal_shutdown('done')
