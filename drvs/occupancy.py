@@ -35,7 +35,6 @@ import math
 from collections.abc import Hashable, Iterable, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from shapely.geometry import Polygon
 
@@ -98,6 +97,8 @@ class CostGrid:
         """Mark the cells whose centres lie inside ``polygon`` (and the cells its edges cross)."""
         if polygon.is_empty:
             return
+        import cv2  # here, not at the top: the server imports this module's names, not OpenCV (0.4 s)
+
         parts = getattr(polygon, 'geoms', [polygon])
         scale = (1 << SUBPIXEL_BITS) / self.spec.resolution
         offset = 0.5 * (1 << SUBPIXEL_BITS)
