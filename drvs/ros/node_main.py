@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import http.client
 import os
+import signal
 import sys
+import threading
 import time
 import xmlrpc.client
 from collections.abc import Callable, Mapping
@@ -131,6 +133,19 @@ def spin(node) -> int:
     return 1 if node.guard.failure else 0  # a background loop failed: logged with its traceback
 
 
+def shutdown_from_a_thread(signum: int, frame) -> None:
+    """SIGINT/SIGTERM handler: ``rospy.signal_shutdown`` on a new thread, not in the handler.
+
+    rospy's own handler shuts the node down inside the signal handler. When the signal
+    lands while the main thread is in a call to the master (advertising a topic, say),
+    shutting down makes another master call on the same thread, which waits for the
+    ServerProxy lock the interrupted call holds: the node hangs for good. From a thread,
+    the shutdown waits until the interrupted call has returned.
+    """
+    reason = f'{signal.Signals(signum).name} received'
+    threading.Thread(target=rospy.signal_shutdown, args=(reason,), name='shutdown').start()
+
+
 def node_main(
     name: str,
     settings_cls,
@@ -168,8 +183,11 @@ def node_main(
     except NoMaster as error:
         print(error_block(prog, error), file=sys.stderr)
         return no_master_code
+    if not disable_signals:  # rospy's own handler can deadlock: ours shuts down from a thread
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, shutdown_from_a_thread)
     try:
-        rospy.init_node(name, anonymous=anonymous, disable_signals=disable_signals)
+        rospy.init_node(name, anonymous=anonymous, disable_signals=True)
     except rospy.ROSInitException as error:  # stopped (Ctrl-C, SIGTERM) while registering
         print(error_block(prog, error), file=sys.stderr)
         return INTERRUPTED
@@ -196,5 +214,4 @@ def node_main(
             return USER_ERROR
         return run(node)
     finally:
-        if disable_signals:
-            rospy.signal_shutdown('done')
+        rospy.signal_shutdown('done')  # nothing if it is shut down already
