@@ -277,7 +277,8 @@ def test_a_callback_shows_its_outlines_on_the_markers_coloured_by_algorithm(stac
 
 def test_tf_has_the_rendering_cameras_optical_frame_and_every_body(stack):
     world = load_world(WORLD)
-    found = tf_lookup(stack.ros, ('map', 'vs1_optical_frame'), ('map', 'robot'), ('map', 'walker'))
+    pairs = [('map', frame) for frame in ('vs1_optical_frame', 'robot', 'walker', 'station', 'crate')]
+    found = tf_lookup(stack.ros, *pairs)
     rotation, eye = optical_pose_of(PinholeCamera.from_config(world.camera('vs1')))
     camera = found['vs1_optical_frame']
     assert camera['translation'] == pytest.approx(list(eye), abs=1e-9)
@@ -286,3 +287,6 @@ def test_tf_has_the_rendering_cameras_optical_frame_and_every_body(stack):
     assert robot['translation'] == pytest.approx([0.5, 1.5, 0.0], abs=0.01) and robot['stamp'] > 0
     walker = found['walker']['translation']
     assert walker[0] == pytest.approx(3.0, abs=0.01) and 0.9 - 0.01 <= walker[1] <= 2.1 + 0.01
+    # The bodies that never move come once, on /tf_static.
+    assert found['station']['translation'] == pytest.approx([3.5, 2.5, 0.0], abs=1e-9)
+    assert found['crate']['translation'] == pytest.approx([1.2, 1.0, 0.0], abs=1e-9)

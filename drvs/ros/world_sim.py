@@ -17,7 +17,8 @@ Topics:
     ``header.stamp`` (the state's time), ``names`` and ``poses`` (x, y, theta = yaw) of
     every body (``robot``, ``station`` and each object). For the vision systems and
     sim_camera, which render the world from it; robots never read it.
-``/tf``: ``map`` -> ``<body name>`` (tf2_msgs/TFMessage, every step)
+``/tf``: ``map`` -> ``<body name>`` of the robot and each human (every step); ``/tf_static``
+    of the bodies that never move (once, latched)
     The same poses for RViz, one frame per body on the floor at its centre, x along its
     heading (:func:`drvs.ros.tf_frames.body_transform`), stamped as ``~poses``.
 ``~ground_truth`` = ``/world_sim/ground_truth`` (std_msgs/String, JSON, every step)
@@ -91,6 +92,14 @@ class WorldSimNode:
         self.poses_pub = rospy.Publisher('~poses', BodyPoses, queue_size=2)
         self.truth_pub = rospy.Publisher('~ground_truth', String, queue_size=2)
         self.tf_broadcaster = tf2_ros.TransformBroadcaster()
+        # Only the robot and the humans move: the rest go on /tf_static once, not 30 times a second.
+        self.moving = {self.simulation.robot_name, *self.simulation.loops}
+        self.static_tf_broadcaster = tf2_ros.StaticTransformBroadcaster()
+        stamp = to_time(rospy.get_time())
+        self.static_tf_broadcaster.sendTransform(
+            [body_transform(name, pose, stamp) for name, pose in self.simulation.poses().items()
+             if name not in self.moving]
+        )  # fmt: skip
         rospy.Subscriber('/robot/cmd_vel', Twist, self._on_cmd_vel, queue_size=2)
         self._last_tick = rospy.get_time()
         self.guard.spawn(self._loop, 'simulation', RESTART)
@@ -142,7 +151,7 @@ class WorldSimNode:
             truth = self.simulation.ground_truth()
         self.poses_pub.publish(body_poses_to_msg(poses, now))
         stamp = to_time(now)  # the stamp of ~poses: the state's time
-        self.tf_broadcaster.sendTransform([body_transform(name, pose, stamp) for name, pose in poses.items()])
+        self.tf_broadcaster.sendTransform([body_transform(name, poses[name], stamp) for name in self.moving])
         self.truth_pub.publish(String(json.dumps({'stamp': now, **truth})))
 
     def stop(self) -> None:
