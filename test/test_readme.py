@@ -3,7 +3,8 @@
 The test reads the section's shell blocks from README.md and runs them in order
 against a private master: terminal 1's ``roscore`` is the harness's master (its
 ``ROS_MASTER_URI`` is in the environment, which ``scripts/env.sh`` keeps),
-terminal 2's ``run_scenario.sh ... --stay`` runs in the background, and each
+terminal 2's ``run_scenario.sh ... --stay`` runs in the background (with ``--out`` in
+the test's folder), and each
 command of terminal 3 and of the blocks after it runs once the robot is done.
 The ``# ...`` lines under a command are its documented output: every one must
 appear in what it prints, with numbers, times and ``...`` free to differ.
@@ -76,7 +77,11 @@ def test_the_hand_run_example_works_as_written(ros: RosHarness):
         'roscore',
     ]  # the harness's master
     ((run_command, _),) = terminal2
-    runner = ros.spawn('run_scenario', ['bash', '-c', f'source scripts/env.sh && exec {run_command}'])
+    # As written, plus --out: its default (out/localisation in the checkout) is a fixed path that
+    # a second run in the same checkout would find in use.
+    out = ros.root / 'out'
+    command = f'source scripts/env.sh && exec {run_command} --out {out}'
+    runner = ros.spawn('run_scenario', ['bash', '-c', command])
     wait_for(
         lambda: 'keep running' in runner.log() or not runner.running(),
         150,
