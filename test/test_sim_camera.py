@@ -25,6 +25,7 @@ from std_msgs.msg import Header
 from drvs.camera import PinholeCamera
 from drvs.optics import intrinsics_of, optical_pose_of
 from drvs.ros.messages import body_poses_from_msg
+from drvs.ros.params import read_params
 from drvs.ros.sim_camera import (
     SimCameraNode,
     SimCameraParams,
@@ -279,7 +280,7 @@ def test_camera_info_and_transform_round_trip():
 
 
 def params_from(**given):
-    return SimCameraParams.from_rosparam(lambda name, default: given.get(name.lstrip('~'), default))
+    return read_params(SimCameraParams, get=lambda name, default: given.get(name.lstrip('~'), default))
 
 
 @pytest.mark.parametrize(

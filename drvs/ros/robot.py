@@ -111,7 +111,6 @@ from drvs.request_schedule import ACCEPT, RETRY, Request, RequestSchedule
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.messages import robot_status_to_msg
-from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, param
 from drvs.srv import (
@@ -202,10 +201,6 @@ class RobotParams(Settings):
     drvs_service: str = param('/drvs/detect_object_boundary', "the DRVS server's DetectObjectBoundary")
     once: bool = param(False, 'exit when done: 0 at the station, 1 otherwise')
 
-    @classmethod
-    def from_rospy(cls) -> RobotParams:
-        return read_params(cls)
-
 
 def request_schedule(params: RobotParams, **kwargs) -> RequestSchedule:
     """The robot's request schedule for ``params``; ``kwargs`` (clock, rng) are for tests."""
@@ -264,10 +259,6 @@ class BlindRobot:
         self.diagnostics = DiagnosticsPublisher(
             f'drvs: {rospy.get_name()}', rospy.get_name().rsplit('/', 1)[-1], self.health, guard=self.guard
         )
-
-    @classmethod
-    def from_params(cls) -> BlindRobot:
-        return cls(RobotParams.from_rospy())
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:

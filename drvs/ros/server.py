@@ -104,7 +104,6 @@ from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detec
 from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.markers import registry_markers
 from drvs.ros.messages import registry_to_msg
-from drvs.ros.params import read_params
 from drvs.ros.service_client import (
     MasterUnreachable,
     ServiceCallError,
@@ -194,11 +193,6 @@ class ServerSettings(Settings):
                 'max_ejection_time',
                 f'must be at least ~ejection_time ({self.ejection_time!r}), got {self.max_ejection_time!r}',
             )
-
-    @classmethod
-    def from_params(cls) -> ServerSettings:
-        """Read every field from the node's private parameters (``~lease`` ...), defaults as above."""
-        return read_params(cls)
 
 
 def _caller(request) -> str:

@@ -66,7 +66,6 @@ from drvs.camera import PinholeCamera
 from drvs.guard import RESTART, LoopGuard
 from drvs.lens import Lens
 from drvs.optics import intrinsics_of
-from drvs.ros.params import read_params
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
@@ -98,11 +97,6 @@ class SimCameraParams(Settings):
     def camera_names(self) -> tuple[str, ...]:
         """The names in ``~cameras``, in order; empty for every camera."""
         return tuple(name.strip() for name in self.cameras.split(',') if name.strip())
-
-    @classmethod
-    def from_rosparam(cls, get=None) -> SimCameraParams:
-        """Every field from ``~name`` (``get``: rospy.get_param); ``~cameras`` may be a list."""
-        return read_params(cls, get=get)
 
 
 def selected_cameras(world, names: tuple[str, ...]) -> tuple[Camera, ...]:

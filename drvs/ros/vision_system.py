@@ -120,7 +120,6 @@ from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.frame_sources import FrameUnavailable, RenderSource, TopicSource
 from drvs.ros.markers import detection_markers, markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
-from drvs.ros.params import read_params
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.scene import Frame
 from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, ParamError, Settings, at_least, one_of, param
@@ -265,11 +264,6 @@ class VisionSystemParams(Settings):
             raise ParamError(
                 'world', 'required with ~source render (or use ~source topic and a camera topic)'
             )
-
-    @classmethod
-    def from_rosparam(cls) -> VisionSystemParams:
-        """Every field from ``~name``; the camera defaults to the node's name."""
-        return read_params(cls, {'camera': rospy.get_name().rsplit('/', 1)[-1]})
 
 
 @dataclass(frozen=True)

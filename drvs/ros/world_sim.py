@@ -50,7 +50,6 @@ from std_msgs.msg import String
 from drvs.guard import RESTART, LoopGuard
 from drvs.msg import BodyPoses
 from drvs.ros.messages import body_poses_to_msg, to_time
-from drvs.ros.params import read_params
 from drvs.ros.tf_frames import body_transform
 from drvs.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.simulation import Simulation
@@ -82,10 +81,6 @@ class WorldSimNode:
         self._last_tick = None
         self._stopping = threading.Event()
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
-
-    @classmethod
-    def from_params(cls) -> WorldSimNode:
-        return cls(read_params(WorldSimSettings))
 
     def start(self) -> None:
         self.simulation = Simulation(self.world)
