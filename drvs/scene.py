@@ -100,7 +100,8 @@ def _quaternion(yaw: float) -> list[float]:
 class Scene:
     """The bodies of a world in a private PyBullet DIRECT client, addressed by name.
 
-    Names: ``robot``, ``station`` and each object's ``name``.
+    Names: each robot's and station's (``robot``, ``station`` in the single form) and each
+    object's ``name``.
     """
 
     def __init__(self, world: World):
@@ -124,7 +125,7 @@ class Scene:
             0, -1, floor, [width / 2, depth / 2, -FLOOR_THICKNESS / 2], physicsClientId=self.client
         )
         try:
-            for body in (world.robot, world.station, *world.objects):
+            for body in (*(b for robot in world.robots for b in (robot.body, robot.station)), *world.objects):
                 self._add(body)
         except BaseException:
             self.close()

@@ -11,6 +11,12 @@ Each problem names the entry by its ``name`` and the key, for example::
       station.position: [8.0, 0.8] is outside the floor (x 0..7, y 0..5.5)
       object 'box1'.size: expected 3 positive numbers [x, y, z], got [0.4, 0.6]
 
+A world has one robot (``robot:`` and ``station:``, the paper's form) or a fleet
+(``robots:``, each robot with its station and its own ``self`` and ``station``
+colour models, the shared roles at the top); :attr:`World.robots` lists them alike
+(:class:`FleetRobot`), a fleet's entries labelled ``robots 'r2'``, ``robots 'r2'.station``
+and ``robots 'r2'.colour_models``.
+
 The keys are documented in ``worlds/README.md``; the stable core is in docs/design.md.
 """
 
@@ -20,7 +26,7 @@ import difflib
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +40,26 @@ from drvs.tag_images import FAMILIES, FAMILY_NAMES
 
 KINDS = ('static', 'human')
 ROLES = ('self', 'station', 'obstacle', 'human')
+"""The roles of the single form's colour_models, all required."""
+OWN_ROLES = ('self', 'station')
+"""The roles each robot of ``robots:`` has a model of its own for, in its own ``colour_models``."""
+SHARED_ROLES = ('obstacle', 'human', 'robot')
+"""The roles of a fleet's top-level colour_models; ``robot`` (a model that finds every robot) is
+required with more than one robot, optional otherwise (also in the single form)."""
 
-TOP_KEYS = ('floor', 'robot', 'station', 'objects', 'vision_systems', 'colour_models')
+TOP_KEYS = (
+    'floor',
+    'robot',
+    'station',
+    'robots',
+    'objects',
+    'vision_systems',
+    'colour_models',
+    'real_time_factor',
+)
 FLOOR_KEYS = ('size', 'colour')
 ROBOT_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'speed', 'tag')
+FLEET_ROBOT_KEYS = (*ROBOT_KEYS, 'station', 'colour_models')
 STATION_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'tag')
 STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy')
 HUMAN_KEYS = (
@@ -60,9 +82,10 @@ CAMERA_KEYS = (
     'speed',
     'distortion',
 )
-_ALL_KEYS = frozenset((*TOP_KEYS, *FLOOR_KEYS, *ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS))
+_ALL_KEYS = frozenset((*TOP_KEYS, *FLOOR_KEYS, *FLEET_ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS))
 _HUMANS_ONLY = 'applies to humans only: add kind: human to make it walk'
 _TAGS_ONLY = 'only the robot and the station carry a tag'
+_FORMS = 'a world has robot: and station: (one robot) or robots: (a list of robots, each with its station)'
 
 AREA = 1e-9
 """Square metres below which two footprints touch rather than overlap."""
@@ -174,24 +197,63 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class FleetRobot:
+    """One robot of the world with its station.
+
+    ``name`` is the body's name and the node name of its blind_robot (``robot`` in the single
+    form); ``colour_models`` its complete role -> algorithm map: the world's shared roles
+    (obstacle, human, robot, ...) and its own ``self`` and ``station``.
+    """
+
+    name: str
+    body: Body
+    station: Body
+    colour_models: dict[str, str]
+
+
+@dataclass(frozen=True)
 class World:
+    """A loaded world file. ``robots`` has one entry in the single ``robot:``/``station:`` form;
+    :attr:`robot`, :attr:`station` and :attr:`colour_models` are the first robot's.
+    ``real_time_factor`` below 1 runs the world on ROS simulated time (``/clock``) that much slower."""
+
     path: Path
     floor_size: tuple[float, float]
-    robot: Body
-    station: Body
+    robots: tuple[FleetRobot, ...]
     objects: tuple[Body, ...]
     vision_systems: tuple[Camera, ...]
-    colour_models: dict[str, str] = field(default_factory=dict)
     floor_colour: tuple[int, int, int] = (255, 255, 255)
+    real_time_factor: float = 1.0
+
+    @property
+    def robot(self) -> Body:
+        return self.robots[0].body
+
+    @property
+    def station(self) -> Body:
+        return self.robots[0].station
+
+    @property
+    def colour_models(self) -> dict[str, str]:
+        return self.robots[0].colour_models
+
+    def fleet_robot(self, name: str) -> FleetRobot:
+        for robot in self.robots:
+            if robot.name == name:
+                return robot
+        raise WorldError(self.path, [_unknown_entry('robots', name, [r.name for r in self.robots])])
 
     def camera(self, name: str) -> Camera:
         for camera in self.vision_systems:
             if camera.name == name:
                 return camera
-        known = ', '.join(c.name for c in self.vision_systems) or 'none'
         raise WorldError(
-            self.path, [Problem('vision_systems', '', f'no entry named {name!r} (known: {known})')]
+            self.path, [_unknown_entry('vision_systems', name, [c.name for c in self.vision_systems])]
         )
+
+
+def _unknown_entry(where: str, name: str, known: list[str]) -> Problem:
+    return Problem(where, '', f'no entry named {name!r} (known: {", ".join(known) or "none"})')
 
 
 def box_footprint(centre, size, yaw: float) -> list[tuple[float, float]]:
@@ -274,6 +336,12 @@ def _flag(value) -> bool:
     if not isinstance(value, bool):
         raise _expected('true or false', value)
     return value
+
+
+def _factor(value) -> float:
+    if not _is_number(value) or not 0 < value <= 1:
+        raise _expected('a number in (0, 1]', value)
+    return float(value)
 
 
 def _one_of(value, choices: tuple[str, ...], expected: str) -> str:
@@ -407,6 +475,7 @@ def _tag(entry: _Entry, body_size) -> Tag | None:
 _BODY_KEYS = {
     # entry kind: (its keys, what it is called, why some other keys do not apply)
     'robot': (ROBOT_KEYS, 'the robot', {'waypoints': 'does not apply: only humans walk'}),
+    'fleet robot': (FLEET_ROBOT_KEYS, 'a robot of robots', {'waypoints': 'does not apply: only humans walk'}),
     'station': (STATION_KEYS, 'the station', {'speed': 'does not apply: the station does not move'}),
     'static': (
         STATIC_KEYS,
@@ -417,24 +486,34 @@ _BODY_KEYS = {
 }
 
 
-def _body(report: _Report, data, role: str, index: int = 0) -> tuple[str, Body] | None:
-    """The robot (``role`` 'robot'), the station ('station') or ``objects[index]`` ('object'),
-    with its label for messages; None when it is unusable (its problems are reported)."""
-    where = f'objects[{index}]' if role == 'object' else role
+def _label(data: dict, where: str, role: str, fleet: bool) -> str:
+    """An entry's label: ``where`` unless a usable name gives a better one (``robot 'r1'``,
+    ``object 'box1'``, ``human 'walker'``, ``robots 'r1'``; a robot's name is its node name)."""
+    name = data.get('name')
+    usable = _is_node_name(name) if role == 'robot' else isinstance(name, str) and name != ''
+    if fleet:
+        return f'robots {name!r}' if role == 'robot' and usable else where
+    noun = ('human' if data.get('kind') == 'human' else 'object') if role == 'object' else role
+    return f'{noun} {name!r}' if usable and name != where else where
+
+
+def _body(report: _Report, data, role: str, where: str, name: str | None, fleet: bool = False):
+    """A body (``role`` 'robot', 'station' or 'object') with its label for messages, or None when
+    it is unusable (its problems are reported). ``where`` is the entry's place (``robot``,
+    ``objects[2]``, ``robots[1]``, ``robots 'r1'.station``), ``name`` its default name (None: a
+    name is required), ``fleet`` says it is an entry of ``robots:`` or the station of one."""
     if not isinstance(data, dict):
         report.add(report.entry(where), '', f'expected a mapping, got {data!r}')
         return None
     kind = data.get('kind', 'static') if role == 'object' else role
-    name = data.get('name', f'object{index}' if role == 'object' else role)
-    named = isinstance(data.get('name'), str) and name != '' and (role == 'object' or name != role)
-    noun = {'static': 'object', 'human': 'human'}.get(kind, role)
-    label = report.entry(f'{noun} {name!r}' if named else where)
+    label = report.entry(_label(data, where, role, fleet))
     if role == 'object' and kind not in KINDS:  # reported below; any object key may apply
         keys, what, hints = HUMAN_KEYS, 'an object', {'tag': _TAGS_ONLY}
     else:
-        keys, what, hints = _BODY_KEYS[kind]
+        keys, what, hints = _BODY_KEYS['fleet robot' if fleet and kind == 'robot' else kind]
     entry = _Entry(report, label, data, keys, what, hints)
-    entry.read('name', _body_name, default=name)
+    reader = _node_name if role == 'robot' else _body_name
+    name = entry.read('name', reader, default=_REQUIRED if name is None else name)
     if role == 'object':
         entry.read('kind', _one_of, KINDS, 'static or human', default=kind)
     position = entry.read('position', _vector, 2, '[x, y]')
@@ -495,27 +574,79 @@ def _camera(report: _Report, data, index: int) -> tuple[str, Camera] | None:
     return label, Camera(name, position, fov, tuple(resolution), target, up, waypoints, speed, distortion)
 
 
-def _models(report: _Report, data) -> dict[str, tuple[str, object]]:
-    """Role -> (algorithm string, parsed parameters) of each colour model that parses."""
-    report.entry('colour_models')
+def _models(
+    report: _Report, data, where: str, required: dict[str, str], refuse: Callable[[str], str | None]
+) -> dict[str, tuple[str, object]]:
+    """Role -> (algorithm string, parsed parameters) of each colour model of the mapping at ``where``
+    that parses. ``required``: role -> the message when it is missing; ``refuse(role)``: why a role
+    does not belong here, or None."""
+    report.entry(where)
     try:
         data = _mapping(data)
     except _Invalid as error:
-        report.add('colour_models', '', error.message)
+        report.add(where, '', error.message)
         return {}
     models = {}
-    for role in ROLES:
+    for role, message in required.items():
         if role not in data:
-            report.add('colour_models', role, f'missing (roles: {", ".join(ROLES)})')
+            report.add(where, role, message)
     for role, text in data.items():
+        refused = refuse(str(role))
+        if refused:
+            report.add(where, str(role), refused)
+            continue
         if not isinstance(text, str):
-            report.add('colour_models', str(role), f'expected an algorithm string, got {text!r}')
+            report.add(where, str(role), f'expected an algorithm string, got {text!r}')
             continue
         try:
             models[role] = (text, parse_algorithm(text).params)
         except AlgorithmError as error:
-            report.add('colour_models', str(role), str(error))
+            report.add(where, str(role), str(error))
     return models
+
+
+def _top_models(report: _Report, data, fleet: bool | None, robots: int) -> dict[str, tuple[str, object]]:
+    """The top-level ``colour_models``: every role in the single form, the shared roles of a fleet
+    (``fleet`` None: the file has neither form, which is reported, so no role is missing)."""
+    if not fleet:
+        missing = f'missing (roles: {", ".join(ROLES)})'
+        required = dict.fromkeys(ROLES if fleet is not None else (), missing)
+        return _models(report, data, 'colour_models', required, lambda role: None)
+    missing = f'missing (roles: {", ".join(SHARED_ROLES)})'
+    required = dict.fromkeys(SHARED_ROLES[:2], missing)
+    if robots > 1:
+        required['robot'] = f'missing: with several robots, a model that finds every robot ({missing[9:-1]})'
+    own = "with robots:, each robot has its own: put it in the robot's colour_models"
+    return _models(report, data, 'colour_models', required, lambda role: own if role in OWN_ROLES else None)
+
+
+def _fleet_robot(report: _Report, data, index: int):
+    """``robots[index]``: its label, its body and its station (each (label, Body) or None), and its
+    own models."""
+    where = f'robots[{index}]'
+    robot = _body(report, data, 'robot', where, None, fleet=True)
+    if not isinstance(data, dict):
+        return where, robot, None, {}
+    label = _label(data, where, 'robot', True)
+    for key in ('station', 'colour_models'):
+        if key not in data:
+            report.add(label, key, 'missing')
+    station = None
+    if 'station' in data:
+        default = f'{data["name"]}_station' if _is_node_name(data.get('name')) else f'station{index}'
+        station = _body(report, data['station'], 'station', f'{label}.station', default, fleet=True)
+    models = {}
+    if 'colour_models' in data:
+        shared = "a shared role: put it in the top-level colour_models (a robot's own are self and station)"
+        missing = f'missing (roles: {", ".join(OWN_ROLES)})'
+        models = _models(
+            report,
+            data['colour_models'],
+            f'{label}.colour_models',
+            dict.fromkeys(OWN_ROLES, missing),
+            lambda role: None if role in OWN_ROLES else shared,
+        )
+    return label, robot, station, models
 
 
 # -- pass 2: whether the world is possible ----------------------------------------------------------
@@ -609,8 +740,15 @@ _MISSED = {
     'station': 'the robot would not find its station',
     'obstacle': 'the robot would not see this obstacle',
     'human': 'the robot would not see this human',
+    'robot': 'the other robots would not see this robot',
 }
-_TAKEN_FOR = {'self': 'the robot', 'station': 'the station', 'obstacle': 'an obstacle', 'human': 'a human'}
+_TAKEN_FOR = {
+    'self': 'the robot',
+    'station': 'the station',
+    'obstacle': 'an obstacle',
+    'human': 'a human',
+    'robot': 'a robot',
+}
 _OBSTACLES = {'obstacle', 'human'}
 """Roles the robot plans around alike: the model of one may also find the bodies of the other."""
 _DECOY = ' (or decoy: true if that is on purpose)'
@@ -624,64 +762,107 @@ def _finds(model: ColourModel | TagQuery, body: Body) -> bool:
     return tag is not None and tag.family == model.family and (not model.ids or tag.id in model.ids)
 
 
-def _check_models(report: _Report, models: dict, floor_colour, roles: dict) -> None:
-    """No colour model matches the floor; each body is found by its role's model and by no model of
-    another role. ``roles``: role -> [(label, body)]. Only ``colour`` and ``apriltag`` models say
+@dataclass(eq=False)
+class _Model:
+    """A colour model to check: where the file gives it, its role, what it finds, and the bodies
+    it is meant to find."""
+
+    where: str  # 'colour_models' or "robots 'r1'.colour_models"
+    role: str
+    algorithm: str
+    params: object
+    meant: list[tuple[str, Body]]
+    taken_for: str
+
+    @property
+    def name(self) -> str:
+        return f'{self.where}.{self.role} ({self.algorithm})'
+
+
+def _model_checks(models: dict, crew: list, fleet: bool, statics, humans) -> list[_Model]:
+    """Each colour model with the bodies it is meant to find: the shared ones (``models``) those of
+    their role, each robot's own ``self`` and ``station`` its body and its station."""
+    robots = [robot for _, robot, _, _ in crew if robot is not None]
+    meant = {'obstacle': statics, 'human': humans, 'robot': robots}
+    checks = []
+    for label, robot, station, own in crew:
+        who = f'robot {robot[1].name!r}' if robot else label
+        for role, (text, params) in own.items():
+            body = robot if role == 'self' else station
+            if fleet:
+                where, taken_for = (
+                    f'{label}.colour_models',
+                    who if role == 'self' else f'the station of {who}',
+                )
+            else:
+                where, taken_for = 'colour_models', _TAKEN_FOR[role]
+            checks.append(_Model(where, role, text, params, [body] if body else [], taken_for))
+    for role, (text, params) in models.items():
+        checks.append(
+            _Model('colour_models', role, text, params, meant.get(role, []), _TAKEN_FOR.get(role, ''))
+        )
+    return checks
+
+
+def _check_models(report: _Report, models: list[_Model], floor_colour, bodies) -> None:
+    """No colour model matches the floor; each model finds the bodies it is meant for and no other
+    body (of ``bodies``, all of them). Only ``colour`` and ``apriltag`` models of the known roles say
     what they find (``motion`` and plugins are not checked); decoys are left out. The robot plans
     around obstacles and humans alike, so either of their models may find the bodies of either."""
-    for role, (algorithm, model) in models.items():
-        if isinstance(model, ColourModel) and floor_colour is not None and _finds(model, _flat(floor_colour)):
-            message = (
-                f'{list(floor_colour)} is matched by colour_models.{role} ({algorithm}); '
-                'the floor must be a colour that no colour model matches'
-            )
-            report.add('floor', 'colour', message)
-    checked = {
-        role: (algorithm, model)
-        for role, (algorithm, model) in models.items()
-        if role in ROLES and isinstance(model, ColourModel | TagQuery)
-    }
-    for role, (algorithm, model) in checked.items():
-        name = f'colour_models.{role} ({algorithm})'
-        key = 'colour' if isinstance(model, ColourModel) else 'tag'
-        own = [(label, body) for label, body in roles[role] if not body.decoy]
+    for model in models:
+        if isinstance(model.params, ColourModel) and floor_colour is not None:
+            if _finds(model.params, _flat(floor_colour)):
+                message = (
+                    f'{list(floor_colour)} is matched by {model.name}; '
+                    'the floor must be a colour that no colour model matches'
+                )
+                report.add('floor', 'colour', message)
+    checked = [
+        model
+        for model in models
+        if model.role in _MISSED and isinstance(model.params, ColourModel | TagQuery)
+    ]
+    for model in checked:
+        role = model.role
+        key = 'colour' if isinstance(model.params, ColourModel) else 'tag'
+        own = [(label, body) for label, body in model.meant if not body.decoy]
         if key == 'tag' and role in _OBSTACLES:
             if own:
-                report.add('colour_models', role, f'finds tags, and objects carry none: {_MISSED[role]}')
+                report.add(model.where, role, f'finds tags, and objects carry none: {_MISSED[role]}')
             continue
-        alike = _OBSTACLES if role in _OBSTACLES else {role}
+        alike = [other for other in models if other is model or {role, other.role} <= _OBSTACLES]
         decoy = _DECOY if role in _OBSTACLES else ''
         for label, body in own:
-            if any(_finds(checked[r][1], body) for r in alike if r in checked):
+            if any(_finds(other.params, body) for other in alike if other in checked):
                 continue
             if key == 'colour':
                 message = (
-                    f'{list(body.colour)} is not matched by {name}: {_MISSED[role]}; '
+                    f'{list(body.colour)} is not matched by {model.name}: {_MISSED[role]}; '
                     f'change the colour or widen the model{decoy}'
                 )
             elif body.tag is None:
-                wanted = model.family + (f' (id {", ".join(map(str, model.ids))})' if model.ids else '')
-                message = f'missing: {name} looks for a {wanted} tag: {_MISSED[role]}'
+                query = model.params
+                wanted = query.family + (f' (id {", ".join(map(str, query.ids))})' if query.ids else '')
+                message = f'missing: {model.name} looks for a {wanted} tag: {_MISSED[role]}'
             else:
                 message = (
-                    f'{body.tag.label} is not found by {name}: {_MISSED[role]}; change the tag or the model'
+                    f'{body.tag.label} is not found by {model.name}: {_MISSED[role]}; '
+                    'change the tag or the model'
                 )
             report.add(label, key, message)
-        for other, bodies in roles.items():
-            for label, body in bodies:
-                if other in alike or body.decoy or not _finds(model, body):
-                    continue
-                found = list(body.colour) if key == 'colour' else body.tag.label
-                remedy = (
-                    'change the colour or narrow the model'
-                    if key == 'colour'
-                    else 'list its ids in the model'
-                )
-                message = (
-                    f'{found} is matched by {name} too: it would be taken for {_TAKEN_FOR[role]}; '
-                    f'{remedy}{_DECOY if body.kind in KINDS else ""}'
-                )
-                report.add(label, key, message)
+        allowed = {id(body) for other in alike for _, body in other.meant}
+        for label, body in bodies:
+            if id(body) in allowed or body.decoy or not _finds(model.params, body):
+                continue
+            found = list(body.colour) if key == 'colour' else body.tag.label
+            remedy = (
+                'change the colour or narrow the model' if key == 'colour' else 'list its ids in the model'
+            )
+            message = (
+                f'{found} is matched by {model.name} too: it would be taken for {model.taken_for}; '
+                f'{remedy}{_DECOY if body.kind in KINDS else ""}'
+            )
+            report.add(label, key, message)
 
 
 def _flat(colour) -> Body:
@@ -719,7 +900,8 @@ def _check_views(report: _Report, cameras, floor) -> None:
 
 
 def _check_names(report: _Report, bodies, cameras) -> None:
-    """Body names are unique (objects may not take ``robot`` or ``station``); camera names too."""
+    """Body names are unique (objects may not take ``robot`` or ``station``); vision system names
+    too, and none is a robot's (both are node names)."""
     seen: dict[str, str] = {}
     for label, body in bodies:
         if body.kind in KINDS and body.name in ('robot', 'station'):
@@ -729,22 +911,32 @@ def _check_names(report: _Report, bodies, cameras) -> None:
                 label, 'name', f'{body.name!r} is the name of {seen[body.name]} too; names must be unique'
             )
         seen.setdefault(body.name, label)
+    robots = {body.name: label for label, body in bodies if body.kind == 'robot'}
     names: set[str] = set()
     for label, camera in cameras:
         if camera.name in names:
             report.add(
                 label, 'name', f'{camera.name!r} names another vision system too; names must be unique'
             )
+        elif camera.name in robots:
+            message = f'{camera.name!r} is the name of {robots[camera.name]} too; node names must be unique'
+            report.add(label, 'name', message)
         names.add(camera.name)
 
 
-def _check_tags(report: _Report, robot, station) -> None:
-    """Each tag (family and id) is on one body only."""
-    if robot and station and robot[1].tag and station[1].tag and robot[1].tag.label == station[1].tag.label:
-        message = (
-            f'{station[1].tag.label} is also {robot[0]}.tag; each tag (family and id) may be on one body only'
-        )
-        report.add(station[0], 'tag', message)
+def _check_tags(report: _Report, bodies) -> None:
+    """Each tag (family and id) is on one body only; the later one in the file is named."""
+    seen: dict[str, str] = {}
+    for label, body in bodies:
+        if body.tag is None:
+            continue
+        if body.tag.label in seen:
+            message = (
+                f'{body.tag.label} is also {seen[body.tag.label]}.tag; '
+                'each tag (family and id) may be on one body only'
+            )
+            report.add(label, 'tag', message)
+        seen.setdefault(body.tag.label, label)
 
 
 # -- the loader -----------------------------------------------------------------------------------
@@ -806,47 +998,64 @@ def load_world(path: str | Path) -> World:
         entry = _Entry(report, 'floor', floor, FLOOR_KEYS, 'the floor')
         floor_size = entry.read('size', _vector, 2, '[x, y]', True)
         floor_colour = entry.read('colour', _colour, default=floor_colour)
-    for required in ('floor', 'robot', 'station', 'vision_systems', 'colour_models'):
+    if 'floor' not in data:
+        top.problem('floor', 'missing')
+    fleet = 'robots' in data
+    given = [key for key in ('robot', 'station') if key in data]
+    for key in given if fleet else ():
+        top.problem(key, f'given with robots: too; {_FORMS}')
+    if not fleet and not given:
+        top.problem('robot', f'missing: {_FORMS}')
+    for key in ('robot', 'station') if given and not fleet else ():
+        if key not in data:
+            top.problem(key, 'missing')
+    for required in ('vision_systems', 'colour_models'):
         if required not in data:
             top.problem(required, 'missing')
-    robot = _body(report, data['robot'], 'robot') if 'robot' in data else None
-    station = _body(report, data['station'], 'station') if 'station' in data else None
+    robot = _body(report, data['robot'], 'robot', 'robot', 'robot') if 'robot' in data else None
+    station = _body(report, data['station'], 'station', 'station', 'station') if 'station' in data else None
+    items = top.read('robots', _list, True, default=[])
+    crew = [_fleet_robot(report, item, i) for i, item in enumerate(items or [])]
     items = top.read('objects', _list, False, default=[])
-    objects = [_body(report, item, 'object', i) for i, item in enumerate(items or [])]
+    objects = [
+        _body(report, item, 'object', f'objects[{i}]', f'object{i}') for i, item in enumerate(items or [])
+    ]
     items = top.read('vision_systems', _list, True, default=[])
     cameras = [_camera(report, item, i) for i, item in enumerate(items or [])]
-    models = _models(report, data['colour_models']) if 'colour_models' in data else {}
+    form = fleet if fleet or given else None
+    models = _top_models(report, data['colour_models'], form, len(crew)) if 'colour_models' in data else {}
+    real_time_factor = top.read('real_time_factor', _factor, default=1.0)
 
     # Pass 2, over the entries that read well.
-    bodies = [body for body in (robot, station, *objects) if body is not None]
+    if not fleet:  # the single form's self and station models are the robot's own
+        crew = [('robot', robot, station, {role: models.pop(role) for role in OWN_ROLES if role in models})]
+    bodies = [body for _, *pair, _ in crew for body in pair if body is not None]  # robot, station
+    bodies += [body for body in objects if body is not None]
     cameras = [camera for camera in cameras if camera is not None]
     statics = [(label, body) for label, body in bodies if body.kind == 'static']
     humans = [(label, body) for label, body in bodies if body.kind == 'human']
     _check_names(report, bodies, cameras)
-    _check_tags(report, robot, station)
+    _check_tags(report, bodies)
     if floor_size is not None:
         _check_floor(report, bodies, floor_size)
     _check_overlaps(report, bodies)
     _check_walks(report, humans, statics)
-    roles = {
-        'self': [robot] if robot else [],
-        'station': [station] if station else [],
-        'obstacle': statics,
-        'human': humans,
-    }
-    _check_models(report, models, floor_colour, roles)
+    _check_models(report, _model_checks(models, crew, fleet, statics, humans), floor_colour, bodies)
     if floor_size is not None:
         _check_views(report, cameras, floor_size)
 
     if report.problems:
         raise WorldError(path, report.sorted())
+    shared = dict(data['colour_models'])
     return World(
         path=path,
         floor_size=floor_size,
-        robot=robot[1],
-        station=station[1],
+        robots=tuple(
+            FleetRobot(robot[1].name, robot[1], station[1], {**shared, **{r: t for r, (t, _) in own.items()}})
+            for _, robot, station, own in crew
+        ),
         objects=tuple(body for _, body in objects),
         vision_systems=tuple(camera for _, camera in cameras),
-        colour_models=dict(data['colour_models']),
         floor_colour=floor_colour,
+        real_time_factor=real_time_factor,
     )

@@ -1,11 +1,22 @@
-"""world_sim's core: waypoint loops, the robot's speed cap, stopping at obstacles, counting contacts."""
+"""world_sim's core: waypoint loops, the robots' speed caps, stopping at obstacles and each other,
+counting contacts, the step clock."""
 
+import doctest
 import math
 
 import pytest
 import yaml
 
-from drvs.simulation import FLOOR_EDGE, Simulation, loop_of, mount_position, position_on_loop
+import drvs.simulation
+from drvs.simulation import (
+    FLOOR_EDGE,
+    MAX_STEP,
+    Simulation,
+    StepClock,
+    loop_of,
+    mount_position,
+    position_on_loop,
+)
 from drvs.world import load_world
 
 WORLD = {
@@ -170,3 +181,131 @@ def test_a_camera_mount_moves_along_its_waypoints(simulation):
     assert mount_position(camera, 0.0) == (1.0, 1.0)
     assert mount_position(camera, 2.0) == pytest.approx((2.0, 1.0))
     assert mount_position(camera, 6.0) == pytest.approx((2.0, 1.0))  # on its way back
+
+
+# -- fleets ---------------------------------------------------------------------------------------
+def fleet_robot(name, position, colour, station, speed=0.5):
+    return {
+        'name': name,
+        'position': position,
+        'size': [0.3, 0.3, 0.2],
+        'colour': colour,
+        'speed': speed,
+        'station': {'position': station, 'size': [0.4, 0.3, 0.1], 'colour': [colour[2], 0, 220]},
+        'colour_models': {
+            'self': f'colour:0,170,{max(colour[2] - 15, 0)},30,230,{colour[2] + 15}',
+            'station': f'colour:{max(colour[2] - 15, 0)},0,200,{colour[2] + 15},30,240',
+        },
+    }
+
+
+FLEET = {
+    **{key: value for key, value in WORLD.items() if key not in ('robot', 'station', 'colour_models')},
+    'robots': [
+        fleet_robot('r1', [0.5, 0.5], [0, 200, 0], [3.5, 2.7]),
+        fleet_robot('r2', [1.5, 0.5], [0, 200, 160], [3.5, 0.3], speed=0.2),
+    ],
+    'colour_models': {key: WORLD['colour_models'][key] for key in ('obstacle', 'human')}
+    | {'robot': 'colour:0,170,0,30,230,175'},
+}
+
+
+@pytest.fixture
+def fleet(tmp_path):
+    def make(walker=None):
+        data = yaml.safe_load(yaml.safe_dump(FLEET))
+        data['objects'][1].update(walker or {})
+        path = tmp_path / 'fleet.yaml'
+        path.write_text(yaml.safe_dump(data))
+        sim = Simulation(load_world(path))
+        made.append(sim)
+        return sim
+
+    made = []
+    yield make
+    for sim in made:
+        sim.scene.close()
+
+
+def test_every_robot_is_driven_by_its_own_command_at_its_own_speed(fleet):
+    sim = fleet()
+    assert list(sim.robots) == ['r1', 'r2'] and sim.robot is sim.robots['r1']
+    sim.set_command(0.0, 1.0)  # no robot named: the first
+    sim.set_command(0.0, 1.0, 'r2')  # capped at r2's 0.2 m/s
+    run(sim, 1.0)
+    assert (sim.robots['r1'].x, sim.robots['r1'].y) == pytest.approx((0.5, 1.0))
+    assert (sim.robots['r2'].x, sim.robots['r2'].y) == pytest.approx((1.5, 0.7))
+    assert sim.poses()['r2'][:2] == pytest.approx((1.5, 0.7))
+
+
+def test_a_robot_stops_at_another_and_both_count_the_contact(fleet):
+    sim = fleet()
+    sim.set_command(0.5, 0.0, 'r1')  # into r2, which stands
+    run(sim, 2.0)
+    r1, r2 = sim.robots['r1'], sim.robots['r2']
+    assert r1.x == pytest.approx(1.5 - 0.3, abs=0.002) and r1.x <= 1.2
+    assert r1.blocked and not r2.blocked
+    assert (r1.touching, r1.contacts) == ({'r2'}, 1)
+    assert (r2.touching, r2.contacts) == ({'r1'}, 1)
+    assert (r2.x, r2.y) == (1.5, 0.5)
+    sim.set_command(0.0, 0.0, 'r1')
+    sim.set_command(0.2, 0.0, 'r2')  # r2 drives away: the touch ends for both
+    run(sim, 0.5)
+    assert r1.touching == set() and r2.touching == set()
+    truth = sim.ground_truth()
+    assert set(truth) == {
+        'time',
+        'robot',
+        'contacts',
+        'touching',
+        'blocked',
+        'travelled',
+        'objects',
+        'robots',
+    }
+    assert set(truth['robots']) == {'r1', 'r2'}
+    assert truth['robots']['r2'] == {
+        'position': pytest.approx([1.6, 0.5]),
+        'yaw': 0.0,
+        'command': pytest.approx([0.2, 0.0]),
+        'contacts': 1,
+        'touching': [],
+        'blocked': False,
+        'travelled': pytest.approx(0.1),
+    }
+    first = truth['robots']['r1']  # the top-level keys are the first robot's, as in the paper's worlds
+    assert truth['robot'] == {key: first[key] for key in ('position', 'yaw', 'command')}
+    assert [truth[key] for key in ('contacts', 'touching', 'blocked', 'travelled')] == [
+        first[key] for key in ('contacts', 'touching', 'blocked', 'travelled')
+    ]
+    assert {'r1', 'r1_station', 'r2', 'r2_station', 'wall', 'walker'} == set(truth['objects'])
+
+
+def test_robots_driving_into_each_other_stop_apart(fleet):
+    sim = fleet()
+    sim.set_command(0.5, 0.0, 'r1')
+    sim.set_command(-0.2, 0.0, 'r2')
+    run(sim, 3.0)
+    r1, r2 = sim.robots['r1'], sim.robots['r2']
+    assert r2.x - r1.x == pytest.approx(0.3, abs=0.002) and r2.x - r1.x >= 0.3 - 1e-9
+    assert r1.contacts == r2.contacts == 1 and r1.blocked and r2.blocked
+
+
+def test_a_walker_waiting_for_the_robots_starts_when_any_robot_moves(fleet):
+    sim = fleet(walker={'wait_for_robot': True, 'loop': False})
+    run(sim, 1.0)
+    assert sim.poses()['walker'][:2] == pytest.approx((0.5, 2.6))
+    sim.set_command(0.0, 0.1, 'r2')
+    run(sim, 1.0)
+    assert sim.poses()['walker'][:2] == pytest.approx((0.5, 2.1), abs=1e-6)
+
+
+def test_the_step_clock_follows_the_wall_clock_or_runs_slower_on_simulated_time():
+    assert doctest.testmod(drvs.simulation).failed == 0
+    walls = iter([100.0, 100.1, 100.4, 100.5])
+    clock = StepClock(lambda: next(walls))  # real time: the wall time, with each step capped
+    assert clock.tick() == pytest.approx((100.1, 0.1))
+    assert clock.tick() == pytest.approx((100.4, MAX_STEP))  # 0.3 s since the last tick
+    assert clock.now() == 100.5  # the wall clock's, between ticks too
+    with pytest.raises(ValueError):
+        StepClock(lambda: 0.0, real_time_factor=0.5)  # slower than real time needs simulated time

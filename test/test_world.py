@@ -199,8 +199,8 @@ def test_a_camera_lens_is_read_as_plumb_bob_coefficients(tmp_path):
         (
             'lights',
             'on',
-            'lights: unknown key (keys of a world file: floor, robot, station, objects, vision_systems, '
-            'colour_models)',
+            'lights: unknown key (keys of a world file: floor, robot, station, robots, objects, '
+            'vision_systems, colour_models, real_time_factor)',
         ),
         ('vision_systems', None, 'vision_systems: missing'),
         ('objects', {'box': 1}, "objects: expected a list, got {'box': 1}"),
@@ -238,8 +238,8 @@ def test_a_missing_file_is_named(tmp_path):
         ),
         (
             '',
-            'expected a mapping with the keys floor, robot, station, objects, vision_systems, colour_models, '
-            'got None',
+            'expected a mapping with the keys floor, robot, station, robots, objects, vision_systems, '
+            'colour_models, real_time_factor, got None',
         ),
     ],
 )
@@ -276,3 +276,168 @@ def test_an_unknown_camera_is_named(tmp_path):
 
 def test_doctests():
     assert doctest.testmod(drvs.world).failed == 0
+
+
+# -- fleets: robots: ----------------------------------------------------------------------------
+SHARED = {'obstacle': 'colour:40,40,40,90,90,90', 'human': 'colour:150,0,0,255,80,80'}
+FLEET = {
+    **{key: value for key, value in BASE.items() if key not in ('robot', 'station', 'colour_models')},
+    'robots': [
+        {
+            'name': 'r1',
+            'position': [0.5, 1.5],
+            'size': [0.3, 0.3, 0.2],
+            'colour': [0, 200, 0],
+            'station': {'position': [3.5, 2.5], 'size': [0.4, 0.3, 0.1], 'colour': [0, 0, 220]},
+            'colour_models': {'self': 'colour:0,170,0,30,230,30', 'station': 'colour:0,0,200,30,30,240'},
+        },
+        {
+            'name': 'r2',
+            'position': [0.5, 2.5],
+            'size': [0.3, 0.3, 0.2],
+            'colour': [0, 200, 160],
+            'speed': 0.3,
+            'station': {
+                'name': 'dock2',
+                'position': [3.5, 0.5],
+                'size': [0.4, 0.3, 0.1],
+                'colour': [160, 0, 220],
+            },
+            'colour_models': {
+                'self': 'colour:0,170,130,30,230,190',
+                'station': 'colour:130,0,200,190,30,240',
+            },
+        },
+    ],
+    'colour_models': {**SHARED, 'robot': 'colour:0,170,0,30,230,190'},
+}
+FLEET_KEYS = (
+    '(keys of a robot of robots: name, position, size, yaw, colour, speed, tag, station, colour_models)'
+)
+FORMS = 'a world has robot: and station: (one robot) or robots: (a list of robots, each with its station)'
+
+
+def test_a_fleet_loads_with_each_robot_its_station_and_its_complete_colour_models(tmp_path):
+    world = load_world(write(tmp_path, FLEET))
+    assert [(r.name, r.body.name, r.station.name) for r in world.robots] == [
+        ('r1', 'r1', 'r1_station'),
+        ('r2', 'r2', 'dock2'),
+    ]
+    r2 = world.fleet_robot('r2')
+    assert r2.body.speed == 0.3 and r2.body.kind == 'robot' and r2.station.kind == 'station'
+    assert r2.colour_models == {
+        **FLEET['colour_models'],
+        'self': 'colour:0,170,130,30,230,190',
+        'station': 'colour:130,0,200,190,30,240',
+    }
+    assert (world.robot, world.station, world.colour_models) == (
+        world.robots[0].body,
+        world.robots[0].station,
+        world.robots[0].colour_models,
+    )
+    assert world.real_time_factor == 1.0
+    with pytest.raises(WorldError) as error:
+        world.fleet_robot('robot')
+    assert str(error.value) == f"{world.path}: robots: no entry named 'robot' (known: r1, r2)"
+
+
+def test_the_single_form_is_a_fleet_of_one_named_robot(tmp_path):
+    world = load_world(write(tmp_path, changed('real_time_factor', 0.5)))
+    (robot,) = world.robots
+    assert (robot.name, robot.body, robot.station) == ('robot', world.robot, world.station)
+    assert robot.colour_models == BASE['colour_models'] == world.colour_models
+    assert world.fleet_robot('robot') is robot
+    assert world.real_time_factor == 0.5
+
+
+def test_a_single_robot_may_have_a_shared_robot_model_and_a_fleet_of_one_needs_none(tmp_path):
+    data = changed('colour_models.robot', 'colour:0,150,0,80,255,80')
+    assert load_world(write(tmp_path, data)).colour_models['robot'] == 'colour:0,150,0,80,255,80'
+    fleet = edited(FLEET, **{'colour_models.robot': None})
+    fleet['robots'].pop()
+    assert [robot.name for robot in load_world(write(tmp_path, fleet)).robots] == ['r1']
+
+
+def fleet_changed(**changes):
+    return edited(FLEET, **changes)
+
+
+@pytest.mark.parametrize(
+    'changes, messages',
+    [
+        ({'robot': BASE['robot']}, [f'robot: given with robots: too; {FORMS}']),
+        ({'robots': None}, [f'robot: missing: {FORMS}']),
+        ({'robots': []}, ['robots: expected a non-empty list, got []']),
+        ({'robots.1': 'r2'}, ["robots[1]: expected a mapping, got 'r2'"]),
+        ({'robots.1.name': None}, ['robots[1].name: missing']),
+        (
+            {'robots.1.name': 'r-2'},
+            [
+                'robots[1].name: expected a ROS node name (letters, digits, _; starting with a letter), '
+                "got 'r-2'"
+            ],
+        ),
+        (
+            {'robots.1.name': 'r1'},
+            ["robots 'r1'.name: 'r1' is the name of robots 'r1' too; names must be unique"],
+        ),
+        ({'robots.1.station': None}, ["robots 'r2'.station: missing"]),
+        (
+            {'robots.1.station.speed': 1},
+            [
+                "robots 'r2'.station.speed: does not apply: the station does not move "
+                '(keys of the station: name, position, size, yaw, colour, tag)'
+            ],
+        ),
+        (
+            {'robots.1.station.position': [3.5, 5.0]},
+            ["robots 'r2'.station.position: [3.5, 5.0] is outside the floor (x 0..4, y 0..3)"],
+        ),
+        (
+            {'robots.1.colour_model': {}},
+            [f"robots 'r2'.colour_model: unknown key; did you mean colour_models? {FLEET_KEYS}"],
+        ),
+        (
+            {'robots.1.colour_models.station': None},
+            ["robots 'r2'.colour_models.station: missing (roles: self, station)"],
+        ),
+        (
+            {'robots.1.colour_models.human': 'colour:150,0,0,255,80,80'},
+            [
+                "robots 'r2'.colour_models.human: a shared role: put it in the top-level colour_models "
+                "(a robot's own are self and station)"
+            ],
+        ),
+        (
+            {'colour_models.self': 'colour:0,170,0,30,230,30'},
+            ["colour_models.self: with robots:, each robot has its own: put it in the robot's colour_models"],
+        ),
+        (
+            {'colour_models.robot': None},
+            [
+                'colour_models.robot: missing: with several robots, a model that finds every robot '
+                '(roles: obstacle, human, robot)'
+            ],
+        ),
+        ({'colour_models.human': None}, ['colour_models.human: missing (roles: obstacle, human, robot)']),
+        ({'real_time_factor': 0}, ['real_time_factor: expected a number in (0, 1], got 0']),
+        ({'real_time_factor': 1.5}, ['real_time_factor: expected a number in (0, 1], got 1.5']),
+        ({'real_time_factor': 'slow'}, ["real_time_factor: expected a number in (0, 1], got 'slow'"]),
+        (
+            {'vision_systems.0.name': 'r2'},
+            ["vision_system 'r2'.name: 'r2' is the name of robots 'r2' too; node names must be unique"],
+        ),
+    ],
+)
+def test_bad_fleets_are_refused_naming_robot_and_key(tmp_path, changes, messages):
+    path = write(tmp_path, fleet_changed(**changes))
+    with pytest.raises(WorldError) as error:
+        load_world(path)
+    assert [str(problem) for problem in error.value.problems] == messages
+
+
+def test_the_single_form_needs_both_robot_and_station(tmp_path):
+    path = write(tmp_path, changed('station', None))
+    with pytest.raises(WorldError) as error:
+        load_world(path)
+    assert str(error.value) == f'{path}: station: missing'

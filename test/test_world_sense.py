@@ -222,7 +222,8 @@ def test_a_file_with_several_problems_names_them_all_in_the_order_of_the_file(tm
             {'colour_model': {}},
             [
                 'colour_model: unknown key; did you mean colour_models? '
-                '(keys of a world file: floor, robot, station, objects, vision_systems, colour_models)'
+                '(keys of a world file: floor, robot, station, robots, objects, vision_systems, '
+                'colour_models, real_time_factor)'
             ],
         ),
     ],
@@ -277,6 +278,77 @@ def test_obstacle_and_human_models_may_find_each_others_bodies(tmp_path):
     path = tmp_path / 'world.yaml'
     path.write_text(yaml.safe_dump(edited(OBSTACLES, **{'objects.0.colour': [220, 0, 0]})))
     assert load_world(path).objects[0].colour == (220, 0, 0)
+
+
+# -- fleets -------------------------------------------------------------------------------------
+CROSSING = yaml.safe_load((REPO / 'worlds/crossing.yaml').read_text())
+CROSSING_FLOOR = 'the floor (x 0..8, y 0..5)'
+TAG = {'family': 'tag36h11', 'id': 3, 'size': 0.2}
+FLEET_WORLDS = {
+    'a robot on another': (
+        {'robots.1.position': [0.9, 1.0]},
+        f"robots 'robot2'.position: overlaps robots 'robot1': {TOUCH}",
+    ),
+    "a station on another robot's station": (
+        {'robots.1.station.position': [7.2, 4.1]},
+        f"robots 'robot2'.station.position: overlaps robots 'robot1'.station: {TOUCH}",
+    ),
+    'a robot off the floor': (
+        {'robots.0.position': [9, 1]},
+        f"robots 'robot1'.position: [9.0, 1.0] is outside {CROSSING_FLOOR}",
+    ),
+    'a self model that finds another robot': (
+        {'robots.0.colour_models.self': 'colour:0,170,0,30,230,190'},
+        "robots 'robot2'.colour: [0, 200, 160] is matched by robots 'robot1'.colour_models.self "
+        "(colour:0,170,0,30,230,190) too: it would be taken for robot 'robot1'; change the colour or narrow "
+        'the model',
+    ),
+    "a station model that finds another robot's station": (
+        {'robots.0.colour_models.station': 'colour:0,0,200,190,30,240'},
+        "robots 'robot2'.station.colour: [160, 0, 220] is matched by robots 'robot1'.colour_models.station "
+        "(colour:0,0,200,190,30,240) too: it would be taken for the station of robot 'robot1'; change the "
+        'colour or narrow the model',
+    ),
+    'a self model that misses its robot': (
+        {'robots.1.colour': [0, 200, 100]},
+        "robots 'robot2'.colour: [0, 200, 100] is not matched by robots 'robot2'.colour_models.self "
+        '(colour:0,170,130,30,230,190): the robot would not find itself; change the colour or widen the '
+        'model',
+    ),
+    'a robot model that misses a robot': (
+        {'colour_models.robot': 'colour:0,170,0,30,230,30'},
+        "robots 'robot2'.colour: [0, 200, 160] is not matched by colour_models.robot "
+        '(colour:0,170,0,30,230,30): the other robots would not see this robot; change the colour or widen '
+        'the model',
+    ),
+    'a robot model that finds a station': (
+        {'colour_models.robot': 'colour:0,0,0,30,230,240'},
+        "robots 'robot1'.station.colour: [0, 0, 220] is matched by colour_models.robot "
+        '(colour:0,0,0,30,230,240) too: it would be taken for a robot; change the colour or narrow the model',
+    ),
+    'an obstacle model that finds a robot': (
+        {'colour_models.obstacle': 'colour:0,0,0,90,255,90'},
+        "robots 'robot1'.colour: [0, 200, 0] is matched by colour_models.obstacle (colour:0,0,0,90,255,90) "
+        'too: it would be taken for an obstacle; change the colour or narrow the model',
+    ),
+    'one tag on two robots': (
+        {'robots.0.tag': TAG, 'robots.1.tag': TAG},
+        "robots 'robot2'.tag: tag36h11:3 is also robots 'robot1'.tag; each tag (family and id) may be on one "
+        'body only',
+    ),
+}
+
+
+@pytest.mark.parametrize('changes, problem', FLEET_WORLDS.values(), ids=FLEET_WORLDS)
+def test_an_impossible_fleet_is_refused_naming_robot_and_key(tmp_path, changes, problem):
+    assert problems_of(tmp_path, edited(CROSSING, **changes)) == [problem]
+
+
+def test_a_human_may_walk_over_every_robot_and_station_of_a_fleet(tmp_path):
+    path = tmp_path / 'world.yaml'
+    walk = {'objects.1.position': [0.8, 0.5], 'objects.1.waypoints': [[0.8, 4.5], [7.2, 4.5], [7.2, 0.5]]}
+    path.write_text(yaml.safe_dump(edited(CROSSING, **walk)))
+    assert load_world(path).objects[1].waypoints[1] == (7.2, 4.5)
 
 
 @pytest.mark.parametrize('path', SHIPPED, ids=[str(p.relative_to(REPO)) for p in SHIPPED])

@@ -5,8 +5,13 @@ node is up), or one block listing every problem, and exit code 2
 (:data:`USER_ERROR`), never a traceback: a wrong or missing parameter (named,
 with where its value came from, :mod:`drvs.ros.params`), a world file that cannot
 be used (:class:`drvs.world.WorldError`), a file or folder that cannot be read or
-written, no ROS master. Anything else is a bug and keeps its traceback. A private
-parameter the node does not know is a warning with the nearest known name.
+written, no ROS master, no ``/clock`` under ``/use_sim_time``. Anything else is a bug and
+keeps its traceback. A private parameter the node does not know is a warning with the
+nearest known name.
+
+With ``/use_sim_time`` true a node is built only once the simulated time has begun (the
+first ``/clock`` message came, :func:`wait_for_clock`), so every time it reads is
+simulated; world_sim, which publishes ``/clock``, says ``publishes_clock=True``.
 
 A node's executable is then a few lines::
 
@@ -45,13 +50,16 @@ from drvs.ros.service_client import TimeoutTransport
 from drvs.settings import ParamError
 
 __all__ = [
+    'CLOCK_TIMEOUT',
     'MASTER_TIMEOUT',
     'USER_ERROR',
+    'NoClock',
     'NoMaster',
     'error_block',
     'master_uri',
     'node_main',
     'spin',
+    'wait_for_clock',
     'wait_for_master',
 ]
 
@@ -63,6 +71,9 @@ INTERRUPTED = 130
 
 MASTER_TIMEOUT = 10.0
 """Seconds a node waits for the ROS master before it gives up."""
+
+CLOCK_TIMEOUT = 30.0
+"""Seconds a node under ``/use_sim_time`` waits for the first ``/clock`` before it gives up."""
 
 USER_ERRORS = (ValueError, OSError)
 """What ``build`` raises for a user's mistake: ValueError (ParamError, WorldError), OSError (a file)."""
@@ -114,6 +125,32 @@ def wait_for_master(timeout: float, uri: str | None = None) -> str:
         time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
 
 
+class NoClock(Exception):
+    """``/use_sim_time`` is true and no ``/clock`` came; the message says who publishes it."""
+
+
+def wait_for_clock(timeout: float) -> bool:
+    """With ``/use_sim_time`` true, wait until rospy has a simulated time: the first ``/clock``
+    message came (``rospy.get_time() > 0``). True at once without it; False if the node was shut
+    down while waiting.
+
+    :raises NoClock: after ``timeout`` seconds of wall time, naming ``/clock`` and world_sim.
+    """
+    if not rospy.get_param('/use_sim_time', False):
+        return True
+    deadline = time.monotonic() + timeout
+    while rospy.get_time() <= 0:
+        if rospy.is_shutdown():
+            return False
+        if time.monotonic() >= deadline:
+            raise NoClock(
+                f'/use_sim_time is true and no /clock came in {timeout:g} s: the simulated time is '
+                'published by world_sim (nodes/world_sim): start it, or set /use_sim_time false for real time'
+            )
+        time.sleep(0.05)
+    return True
+
+
 def error_block(prog: str, error: BaseException) -> str:
     """``prog: message`` for a one-line error; ``prog:`` and the lines indented for several."""
     if isinstance(error, OSError) and error.strerror:
@@ -158,6 +195,8 @@ def node_main(
     master_timeout: float = MASTER_TIMEOUT,
     no_master_code: int = USER_ERROR,
     watch: bool = True,
+    publishes_clock: bool = False,
+    clock_timeout: float = CLOCK_TIMEOUT,
     prog: str | None = None,
 ) -> int:
     """Run a node: its exit code, :data:`USER_ERROR` after one clean message on a user's mistake.
@@ -170,6 +209,8 @@ def node_main(
     :param defaults: field defaults known only once the node is up (or a function giving them).
     :param master_timeout: seconds to wait for the master; then ``no_master_code``.
     :param watch: register again after a master restart (:func:`drvs.ros.master_watch.watch_master`).
+    :param publishes_clock: the node publishes ``/clock`` itself (world_sim): it does not wait for it.
+    :param clock_timeout: seconds to wait for the first ``/clock`` under ``/use_sim_time``.
     :param prog: the name messages start with (default: the executable's).
     """
     prog = prog or Path(sys.argv[0]).name
@@ -200,6 +241,8 @@ def node_main(
             rospy.logwarn('%s: %s', prog, warning)
         try:
             settings = read_params(settings_cls, defaults() if callable(defaults) else defaults, given=given)
+            if not publishes_clock and not wait_for_clock(clock_timeout):
+                return INTERRUPTED  # stopped while waiting
             try:
                 node = build(settings)
             except ParamError as error:  # a parameter found wrong while building: where it came from
@@ -208,7 +251,7 @@ def node_main(
                     if param in private and param not in given
                     else ''
                 ) from None
-        except USER_ERRORS as error:
+        except (*USER_ERRORS, NoClock) as error:
             rospy.logfatal('%s', error_block(prog, error))
             rospy.signal_shutdown('user error')
             return USER_ERROR
