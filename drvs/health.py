@@ -136,6 +136,7 @@ def server_health(
     refusals_recent: Mapping[str, int],
     rate_limited_callers: int,
     ejected: int,
+    watches: int = 0,
 ) -> Health:
     """The server's health from its registry, its forwarding pool and its refusals.
 
@@ -146,6 +147,7 @@ def server_health(
     :param refusals_recent: refusals in the last period (since the previous status).
     :param rate_limited_callers: callers currently over their share.
     :param ejected: vision systems currently ejected after failed forwards.
+    :param watches: watches standing now (a value only: any number is healthy).
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -197,6 +199,7 @@ def server_health(
         ('max pending forwards', str(max_pending)),
         ('rate-limited callers', str(rate_limited_callers)),
         ('ejected vision systems', str(ejected)),
+        ('watches', str(watches)),
     ]
     for name in _refusal_names(refusals_by_status, refusals_recent):
         values.append((f'refused {name} (last period)', str(refusals_recent.get(name, 0))))
@@ -215,6 +218,7 @@ def vision_system_health(
     callbacks_recent: int,
     registration_status: str = '',
     registration_error: str = '',
+    watches: int = 0,
 ) -> Health:
     """A vision system's health from its registration, its camera feed, its queue and its callbacks.
 
@@ -232,6 +236,7 @@ def vision_system_health(
         or got no answer.
     :param registration_error: why the last registration failed (the refusal's
         message, or why the server did not answer); empty when it succeeded.
+    :param watches: standing requests (watches) it serves now; a value, no rule.
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -290,6 +295,7 @@ def vision_system_health(
         ('stale after (s)', _seconds(stale_after)),
         ('queue length', str(queue_length)),
         ('queue size', str(queue_size)),
+        ('watches', str(watches)),
         ('callbacks (last period)', str(callbacks_recent)),
         ('callback failures (last period)', str(callback_failures_recent)),
         ('last registration refusal', registration_status or 'none'),

@@ -126,6 +126,7 @@ class Registration:
     instance: str = ''  # which process serves it (the server uses its rosrpc URI)
     algorithms: frozenset[str] = frozenset(BUILTIN_NAMES)  # the algorithm names it runs
     client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
+    watch_service: bool = False  # it serves drvs/WatchObjectBoundary too (:mod:`drvs.watches`)
 
 
 class Registry:
@@ -193,6 +194,7 @@ class Registry:
         make_client: Callable[[str], object] | None = None,
         instance: str = '',
         algorithms: Sequence[str] = (),
+        watch_service: bool = False,
     ) -> str:
         """Add, move, renew or (with no vertices) remove ``service_name``.
 
@@ -208,6 +210,8 @@ class Registry:
 
         :param algorithms: the names of the algorithms it runs (:func:`algorithm_names`;
             empty: the built-ins).
+        :param watch_service: whether it also serves watches (the server checks it on a new
+            registration and passes it on with every renewal).
         :raises ValidationError: the field of view is not a valid polygon, or a name in
             ``algorithms`` is not valid.
         :raises Refusal: ``UNAVAILABLE``, this instance of the vision system is ejected;
@@ -245,6 +249,7 @@ class Registry:
                 instance=instance,
                 algorithms=names,
                 client=client,
+                watch_service=watch_service,
             )
             if moved:
                 self._index.insert(service_name, polygon)

@@ -59,7 +59,17 @@ from drvs.status import ACCEPTED, INVALID, TEMPORARY, UNSUPPORTED, name
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = ['ACCEPT', 'GIVE_UP', 'RETRY', 'Outcome', 'Request', 'RequestSchedule']
+__all__ = [
+    'ACCEPT',
+    'GIVE_UP',
+    'RETRY',
+    'Outcome',
+    'Request',
+    'RequestSchedule',
+    'Retries',
+    'Scheduled',
+    'min_interval',
+]
 
 Box = tuple[float, float, float, float]
 
@@ -83,16 +93,103 @@ class Outcome:
     delay: float = 0.0
 
 
+class Retries:
+    """How DRVS's answers per role go: backoff after temporary refusals and failed calls, the
+    refusal counters, and the final refusal (see the module docstring; shared with
+    :class:`drvs.watch_schedule.WatchSchedule`).
+
+    :param base: first retry delay, seconds (:func:`drvs.retry.retry_delay`).
+    :param cap: longest retry delay before jitter, unless the server's ``retry_after`` is longer.
+    :param jitter: retry delays are multiplied by a random factor in ``[1, 1 + jitter]``.
+    :param clock: monotonic seconds.
+    :param rng: uniform random numbers in [0, 1), for the jitter.
+    """
+
+    def __init__(
+        self,
+        base: float,
+        cap: float,
+        jitter: float,
+        clock: Callable[[], float],
+        rng: Callable[[], float],
+    ):
+        retry_delay(0.0, 0, base=base, cap=cap, jitter=jitter)  # raises for a negative one
+        self.base, self.cap, self.jitter = base, cap, jitter
+        self.clock = clock
+        self.rng = rng
+        self.failed = 0  # calls that got no response
+        self.refused: Counter[str] = Counter()  # status name -> refusals
+        self.invalid: tuple[str, str] | None = None  # (role, the server's message) after INVALID
+        self._attempts: Counter[str] = Counter()  # role -> failed calls or temporary refusals in a row
+        self._not_before: dict[str, float] = {}  # role -> no retry before this time
+        self._warned: set[int] = set()
+
+    def attempt(self, role: str) -> int:
+        """Failed calls or temporary refusals of ``role`` in a row."""
+        return self._attempts[role]
+
+    def ready_at(self, role: str) -> float:
+        """When ``role`` may be sent again (-inf: at once)."""
+        return self._not_before.get(role, -math.inf)
+
+    def on_response(self, role: str, status: int, retry_after: float = 0.0, message: str = '') -> Outcome:
+        """Record DRVS's answer (its ``status``) to a call for ``role``; say what it means."""
+        if status == ACCEPTED:
+            self._attempts.pop(role, None)
+            self._not_before.pop(role, None)
+            return Outcome(ACCEPT)
+        self.refused[name(status)] += 1
+        if status in (INVALID, UNSUPPORTED):
+            self.invalid = (role, message)
+            return Outcome(GIVE_UP)
+        if status not in TEMPORARY and status not in self._warned:
+            self._warned.add(status)
+            logger.warning('DRVS answered with unknown status %d; retrying it later', status)
+        return Outcome(RETRY, self._back_off(role, retry_after))
+
+    def on_failure(self, role: str) -> Outcome:
+        """Record that a call for ``role`` got no response (server down, timeout, ...)."""
+        self.failed += 1
+        return Outcome(RETRY, self._back_off(role, 0.0))
+
+    def _back_off(self, role: str, retry_after: float) -> float:
+        delay = retry_delay(
+            retry_after, self._attempts[role], base=self.base, cap=self.cap, jitter=self.jitter, rng=self.rng
+        )
+        self._attempts[role] += 1
+        self._not_before[role] = self.clock() + delay
+        return delay
+
+
+class Scheduled:
+    """What a schedule's :class:`Retries` counted, for the robot's status."""
+
+    retries: Retries
+
+    @property
+    def failed(self) -> int:
+        """Calls that got no response."""
+        return self.retries.failed
+
+    @property
+    def refused(self) -> Counter[str]:
+        """Status name -> refusals."""
+        return self.retries.refused
+
+    @property
+    def invalid(self) -> tuple[str, str] | None:
+        """(role, the server's message) after INVALID or UNSUPPORTED; None before."""
+        return self.retries.invalid
+
+
 @dataclass
 class _Role:
-    attempt: int = 0  # failed calls or temporary refusals in a row
-    not_before: float = -math.inf  # no retry before this time
     last_sent: float = -math.inf
     sent_in_round: int = 0  # number of the round it was last sent in
     in_flight: bool = False
 
 
-class RequestSchedule:
+class RequestSchedule(Scheduled):
     """Decides which role the requester asks next; see the module docstring.
 
     :param periods: role -> seconds between requests once the role's object is found.
@@ -115,28 +212,25 @@ class RequestSchedule:
         rng: Callable[[], float] = random.random,
     ):
         periods = dict(periods or {})
-        if not max_rate > 0:
-            raise ValueError(f'max_rate: must be positive, got {max_rate}')
         for role, period in periods.items():
             if not period > 0:
                 raise ValueError(f'periods[{role!r}]: must be positive, got {period}')
-        retry_delay(0.0, 0, base=base, cap=cap, jitter=jitter)  # raises for a negative one
         self.periods = periods
-        self.min_interval = 1.0 / max_rate
-        self.base, self.cap, self.jitter = base, cap, jitter
+        self.min_interval = min_interval(max_rate)
+        self.retries = Retries(base, cap, jitter, clock, rng)
         self.clock = clock
-        self.rng = rng
         self.sent = 0  # requests handed out
-        self.failed = 0  # calls that got no response
-        self.refused: Counter[str] = Counter()  # status name -> refusals
-        self.invalid: tuple[str, str] | None = None  # (role, the server's message) after INVALID
         self.stopped = False
         self._roles: dict[str, _Role] = {}
         self._round: dict[str, Box] = {}
         self._round_number = 0
         self._found: frozenset[str] = frozenset()
         self._last_sent = -math.inf
-        self._warned: set[tuple[str, int]] = set()
+
+    @property
+    def done(self) -> bool:
+        """Whether nothing is left to send after :meth:`stop` (one-shot requests need no cancel)."""
+        return self.stopped
 
     # -- the control loop's side ---------------------------------------------------------------
     def post(self, regions: Mapping[str, Box], found: Collection[str] = ()) -> None:
@@ -169,7 +263,7 @@ class RequestSchedule:
         state.last_sent = self._last_sent = now
         state.sent_in_round = self._round_number
         self.sent += 1
-        return Request(role, self._round[role], state.attempt)
+        return Request(role, self._round[role], self.retries.attempt(role))
 
     def in_flight(self, role: str) -> bool:
         """Whether ``role`` was handed out and its outcome not reported yet."""
@@ -185,28 +279,13 @@ class RequestSchedule:
 
     def on_response(self, role: str, status: int, retry_after: float = 0.0, message: str = '') -> Outcome:
         """Record DRVS's answer (its ``status``) to the request for ``role``; say what it means."""
-        state = self._roles[role]
-        state.in_flight = False
-        if status == ACCEPTED:
-            state.attempt = 0
-            state.not_before = -math.inf
-            return Outcome(ACCEPT)
-        self.refused[name(status)] += 1
-        if status in (INVALID, UNSUPPORTED):
-            self.invalid = (role, message)
-            return Outcome(GIVE_UP)
-        if status not in TEMPORARY:
-            self._warn_once(
-                ('unknown', status), 'DRVS answered with unknown status %d; retrying it later', status
-            )
-        return Outcome(RETRY, self._back_off(state, retry_after))
+        self._roles[role].in_flight = False
+        return self.retries.on_response(role, status, retry_after, message)
 
     def on_failure(self, role: str) -> Outcome:
         """Record that the request for ``role`` got no response (server down, timeout, ...)."""
-        state = self._roles[role]
-        state.in_flight = False
-        self.failed += 1
-        return Outcome(RETRY, self._back_off(state, 0.0))
+        self._roles[role].in_flight = False
+        return self.retries.on_failure(role)
 
     # -- internals -----------------------------------------------------------------------------
     def _ready_at(self, role: str) -> float:
@@ -219,20 +298,17 @@ class RequestSchedule:
             or state.sent_in_round == self._round_number
         ):
             return math.inf
-        ready = state.not_before
+        ready = self.retries.ready_at(role)
         if role in self.periods and role in self._found:
             ready = max(ready, state.last_sent + self.periods[role])
         return ready
 
-    def _back_off(self, state: _Role, retry_after: float) -> float:
-        delay = retry_delay(
-            retry_after, state.attempt, base=self.base, cap=self.cap, jitter=self.jitter, rng=self.rng
-        )
-        state.attempt += 1
-        state.not_before = self.clock() + delay
-        return delay
 
-    def _warn_once(self, key: tuple[str, int], text: str, *args) -> None:
-        if key not in self._warned:
-            self._warned.add(key)
-            logger.warning(text, *args)
+def min_interval(max_rate: float) -> float:
+    """Seconds between two calls at ``max_rate`` calls per second.
+
+    :raises ValueError: ``max_rate`` is not positive.
+    """
+    if not max_rate > 0:
+        raise ValueError(f'max_rate: must be positive, got {max_rate}')
+    return 1.0 / max_rate

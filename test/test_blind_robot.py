@@ -65,7 +65,13 @@ def final_truth(ros, output, state):
     return wait_for(last, 10, f'the fake to record the final status ({state})', on_timeout=ros.describe)
 
 
-def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
+def calls(output):
+    """The robot's calls to the fake DRVS as it recorded them: one-shot requests and watch calls."""
+    return [e for e in read_json_lines(output) if e['kind'] in ('request', 'watch')]
+
+
+@pytest.mark.parametrize('mode', ['watch', 'poll'])
+def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros, mode):
     world = write_world(
         ros.root,
         [
@@ -82,7 +88,8 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
             },
         ],
     )
-    fake, robot, output = start(ros, world, fake_params={'hidden': 'late', 'appear_distance': 0.8})
+    fake_params = {'hidden': 'late', 'appear_distance': 0.8}
+    fake, robot, output = start(ros, world, fake_params=fake_params, robot_params={'requests': mode})
     # the robot's only inputs are DRVS callbacks: it subscribes to nothing at all
     assert ros.master.subscriptions_of('/robot') == []
     code = wait_exit(ros, robot, 60)
@@ -95,36 +102,73 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros):
     assert truth['contacts'] == 0
     status = truth['status']
     assert status['replans'] >= 1
-    assert status['callbacks'] > status['requests'] // 2  # twice-sent answers were all taken in
     assert status['refused'] == {}
+    assert status['callback_bytes'] > 100 * status['callbacks'] > 0  # a callback carries outlines
 
-    requests = [e for e in events if e['kind'] == 'request']
+    sent = calls(output)
+    assert {e['kind'] for e in sent} == {'watch' if mode == 'watch' else 'request'}
+    assert {e['role'] for e in sent} == {'self', 'station', 'obstacle', 'human'}
     whole = [0.0, 0.0, *FLOOR]
-    assert {tuple(e['roi']) for e in requests if e['role'] in ('self', 'station')} == {tuple(whole)}
-    obstacle_rois = [e['roi'] for e in requests if e['role'] in ('obstacle', 'human')]
+    for role in ('self', 'station'):  # the whole floor until found, then around it
+        rois = [e['roi'] for e in sent if e['role'] == role]
+        assert rois[0] == whole and rois[-1] != whole, (role, rois)
+    station_rois = [e['roi'] for e in sent if e['role'] == 'station']
+    found = next(i for i, roi in enumerate(station_rois) if roi != whole)
+    for roi in station_rois[found:]:  # its box plus a metre
+        assert roi == pytest.approx(
+            [STATION[0] - 1.2, STATION[1] - 1.15, FLOOR[0], STATION[1] + 1.15], abs=0.01
+        )
+    obstacle_rois = [e['roi'] for e in sent if e['role'] in ('obstacle', 'human')]
     assert obstacle_rois
     for roi in obstacle_rois:  # the robot-station box plus the margin (0.75 m), never the whole floor
+        assert roi != whole
         assert 0.0 <= roi[0] <= STATION[0] - 0.75
         assert roi[2] == pytest.approx(FLOOR[0])  # the station's x plus the margin, clipped
-        assert 0.0 < roi[1] <= STATION[1] - 0.75 + 1e-9
-        assert STATION[1] + 0.75 - 1e-9 <= roi[3] < FLOOR[1]
-    assert {e['role'] for e in requests} == {'self', 'station', 'obstacle', 'human'}
+        assert 0.0 <= roi[1] <= STATION[1] - 0.75 + 1e-9
+        assert STATION[1] + 0.75 - 1e-9 <= roi[3] <= FLOOR[1]
+        if mode == 'poll':  # a watch's box also reaches ahead where the robot goes
+            assert 0.0 < roi[1] and roi[3] < FLOOR[1]
+    if mode == 'poll':
+        assert status['callbacks'] > status['requests'] // 2  # twice-sent answers were all taken in
+        assert (status['watch_calls'], status['watches']) == (0, 0)
+        return
+    assert status['watch_calls'] == status['requests'] == len(sent) - 4  # then it cancelled its 4 watches
+    assert status['watches'] == 4
+    assert all(e['duration'] == 10.0 for e in sent[:-4])
+    assert sorted((e['role'], e['duration']) for e in sent[-4:]) == [
+        ('human', 0.0),
+        ('obstacle', 0.0),
+        ('self', 0.0),
+        ('station', 0.0),
+    ]
+    assert {e['request_id'] for e in sent} == {
+        '/robot/self',
+        '/robot/station',
+        '/robot/obstacle',
+        '/robot/human',
+    }
+    periods = {e['role']: e['period'] for e in sent}
+    assert periods == pytest.approx({'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2})
 
 
-@pytest.mark.parametrize('status, name', [(2, 'BUSY'), (9, 'status 9')], ids=['busy', 'unknown-status'])
-def test_temporary_refusals_are_retried_after_retry_after_and_the_robot_arrives(ros, status, name):
+@pytest.mark.parametrize(
+    'status, name, mode',
+    [(2, 'BUSY', 'watch'), (9, 'status 9', 'watch'), (2, 'BUSY', 'poll')],
+    ids=['busy', 'unknown-status', 'busy-poll'],
+)
+def test_temporary_refusals_are_retried_after_retry_after_and_the_robot_arrives(ros, status, name, mode):
     world = write_world(ros.root, [])
     refusals = 6
     fake_params = {'refuse_first': refusals, 'refuse_status': status, 'refuse_retry_after': 0.3}
     fake_params['refuse_message'] = 'busy: try again later'
-    _, robot, output = start(ros, world, fake_params=fake_params)
+    _, robot, output = start(ros, world, fake_params=fake_params, robot_params={'requests': mode})
     assert wait_exit(ros, robot, 60) == 0, ros.describe()
     assert 'arrived at the station' in robot.log(200)
     truth = final_truth(ros, output, 'arrived')
     assert truth['status']['refused'] == {name: refusals}
     assert math.dist(truth['robot'], STATION) <= 0.1 + 0.05
 
-    requests = [e for e in read_json_lines(output) if e['kind'] == 'request']
+    requests = calls(output)
     assert [e['status'] for e in requests[:refusals]] == [name] * refusals
     assert {e['status'] for e in requests[refusals:]} == {'ACCEPTED'}
     for refused in requests[:refusals]:  # each role came back no earlier than retry_after
@@ -149,8 +193,8 @@ def test_an_invalid_request_ends_the_mission_with_the_servers_message(ros):
     truth = final_truth(ros, output, 'failed')
     assert truth['status']['reason'] == reason
     assert truth['status']['refused'] == {'INVALID': 1}
-    requests = [e for e in read_json_lines(output) if e['kind'] == 'request']
-    assert [(e['role'], e['status']) for e in requests] == [('self', 'INVALID')]  # never asked again
+    # never asked again, and nothing to cancel: no watch was granted
+    assert [(e['role'], e['status']) for e in calls(output)] == [('self', 'INVALID')]
 
 
 def test_a_slow_server_never_holds_up_the_control_loop(ros):
@@ -161,7 +205,13 @@ def test_a_slow_server_never_holds_up_the_control_loop(ros):
         ros,
         world,
         fake_params={'ack_delay': 1.0},
-        robot_params={'rate': rate, 'request_timeout': 3.0, 'fix_timeout': 30.0, 'once': False},
+        robot_params={
+            'requests': 'poll',  # a call every tick: the most to wait for
+            'rate': rate,
+            'request_timeout': 3.0,
+            'fix_timeout': 30.0,
+            'once': False,
+        },
     )
 
     def truths():
@@ -188,14 +238,24 @@ def test_a_slow_server_never_holds_up_the_control_loop(ros):
     assert robot.running()
 
 
-def test_without_drvs_the_robot_fails_by_its_own_deadline(ros):
+@pytest.mark.parametrize(
+    'mode, failed',
+    [
+        (
+            'watch',
+            'DRVS watch /robot/self (new) failed: service /drvs/watch_object_boundary: unknown service',
+        ),
+        ('poll', 'DRVS request self-1 failed: service /drvs/detect_object_boundary: unknown service'),
+    ],
+    ids=['watch', 'poll'],
+)
+def test_without_drvs_the_robot_fails_by_its_own_deadline(ros, mode, failed):
     world = write_world(ros.root, [])
-    robot = ros.start_node(
-        'nodes/blind_robot', name='robot', params={'world': world, 'once': True, 'fix_timeout': 2.0}
-    )
+    params = {'world': world, 'once': True, 'fix_timeout': 2.0, 'requests': mode}
+    robot = ros.start_node('nodes/blind_robot', name='robot', params=params)
     assert wait_exit(ros, robot, 30) == 1
     log = robot.log(200)
-    assert 'DRVS request self-1 failed: service /drvs/detect_object_boundary: unknown service' in log
+    assert failed in log
     assert 'blind robot failed: no fix of the robot for 2.0 s' in log
 
 
@@ -217,10 +277,17 @@ def test_an_unreachable_station_is_a_failure(ros):
     assert 'goal unreachable: no way from' in robot.log(200)
 
 
-def test_ctrl_c_stops_the_robot_cleanly(ros):
+def test_ctrl_c_stops_the_robot_cleanly_and_cancels_its_watches(ros):
     world = write_world(ros.root, [])
-    _, robot, _ = start(ros, world, robot_params={'once': False})
+    _, robot, output = start(ros, world, robot_params={'once': False, 'fix_timeout': 30.0})
+
+    def standing():
+        return {e['role'] for e in calls(output) if e['duration'] > 0 and e['status'] == 'ACCEPTED'}
+
+    wait_for(lambda: len(standing()) == 4, 30, 'the robot to watch all four roles', on_timeout=ros.describe)
     assert robot.interrupt() == 0, robot.describe()
+    cancels = [e['role'] for e in calls(output) if e['duration'] == 0]
+    assert sorted(cancels) == ['human', 'obstacle', 'self', 'station']
 
 
 @pytest.mark.parametrize(
@@ -228,6 +295,7 @@ def test_ctrl_c_stops_the_robot_cleanly(ros):
     [
         ({'rate': 0}, '~rate: must be positive, got 0'),
         ({'roi_margin': -1.0}, '~roi_margin: must not be negative, got -1.0'),
+        ({'requests': 'push'}, "~requests: must be one of watch, poll, got 'push'"),
         ({'world': '/nonexistent.yaml'}, '/nonexistent.yaml: cannot read the world file'),
     ],
 )

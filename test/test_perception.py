@@ -1,14 +1,19 @@
-"""Perception bookkeeping: request ids, superseded and repeated answers, merging, ROI policy."""
+"""Perception bookkeeping: request ids, superseded and repeated answers, watch answers, merging,
+the region-of-interest policy."""
 
 import pytest
 from shapely.geometry import box
 
 from drvs.perception import (
+    WATCH,
+    Fix,
     Perception,
     PerceptionError,
+    Region,
+    RegionPolicy,
     exclude_bodies,
     merge_outlines,
-    obstacle_roi,
+    spanned,
     whole_floor,
 )
 
@@ -74,6 +79,18 @@ def test_obstacle_answers_are_superseded_per_vision_system(perception):
     assert late_other is not None and late_other.vision_system == '/vs2'
 
 
+def test_a_station_partly_hidden_keeps_its_fix(perception):
+    """The robot drives onto its station: the cameras see less of it, and it has not moved."""
+    for _ in range(3):
+        perception.requests.issue('station')
+    answer(perception, 'station', 1, '/vs1', square(5.0, 3.0, half=0.2))
+    answer(perception, 'station', 2, '/vs1', [(4.8, 2.8), (4.9, 2.8), (4.9, 3.2), (4.8, 3.2)])  # a sliver
+    assert perception.fix('station').position == pytest.approx((5.0, 3.0))
+    assert perception.fix('station').seq == 1
+    answer(perception, 'station', 3, '/vs1', square(5.0, 3.1, half=0.19))  # in full view again
+    assert perception.fix('station').position == pytest.approx((5.0, 3.1))
+
+
 def test_the_nearest_candidate_to_the_last_fix_wins(perception):
     for _ in range(2):
         perception.requests.issue('self')
@@ -86,8 +103,18 @@ def test_the_nearest_candidate_to_the_last_fix_wins(perception):
     'role, request_id, algorithm, message',
     [
         ('self', 'self-7', None, "request_id: 'self-7' was never issued by this robot"),
-        ('self', 'robot-1', None, "request_id: expected <role>-<number> with a role of ours, got 'robot-1'"),
-        ('self', 'self-x', None, "request_id: expected <role>-<number> with a role of ours, got 'self-x'"),
+        (
+            'self',
+            'robot-1',
+            None,
+            "request_id: expected <role>-<number> or a watch /<role> with a role of ours, got 'robot-1'",
+        ),
+        (
+            'self',
+            'self-x',
+            None,
+            "request_id: expected <role>-<number> or a watch /<role> with a role of ours, got 'self-x'",
+        ),
         (
             'self',
             'self-1',
@@ -125,11 +152,140 @@ def test_the_robot_and_station_are_never_obstacles():
 
 def test_roi_policy():
     assert whole_floor((7.0, 5.5)) == (0.0, 0.0, 7.0, 5.5)
-    assert obstacle_roi((0.8, 2.6), (5.9, 3.5), 0.5, (7.0, 5.5)) == pytest.approx((0.3, 2.1, 6.4, 4.0))
-    assert obstacle_roi((0.2, 0.1), (6.9, 5.4), 1.0, (7.0, 5.5)) == (0.0, 0.0, 7.0, 5.5)
+    assert spanned((0.8, 2.6), (5.9, 3.5), 0.5, (7.0, 5.5)) == pytest.approx((0.3, 2.1, 6.4, 4.0))
+    assert spanned((0.2, 0.1), (6.9, 5.4), 1.0, (7.0, 5.5)) == (0.0, 0.0, 7.0, 5.5)
 
 
 def test_missing_colour_model_is_refused():
     with pytest.raises(PerceptionError) as error:
         Perception({'self': MODELS['self']})
     assert str(error.value) == 'colour_models: missing role(s) station, obstacle, human'
+
+
+# -- watches -------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def watching():
+    perception = Perception({**MODELS, 'robot': 'colour:0,0,0,30,30,30'}, '/robot1', watch_keep=10.0)
+    for role in perception.algorithms:
+        perception.requests.watch_id(role)
+    return perception
+
+
+def seen(perception, role, vs, *outlines, stamp):
+    return perception.accept(perception.algorithms[role], f'/robot1/{role}', vs, stamp, list(outlines))
+
+
+def test_a_watch_id_names_the_node_and_the_role(watching):
+    assert watching.obstacle_roles == ('obstacle', 'human', 'robot')
+    assert watching.requests.watch_id('self') == '/robot1/self'
+    assert watching.requests.parse('/robot1/robot') == ('robot', WATCH)
+    unsent = Perception(MODELS, '/robot1')
+    with pytest.raises(PerceptionError) as error:
+        unsent.accept(MODELS['self'], '/robot1/self', '/vs1', 1.0, [square(1, 1)])
+    expected = "expected <role>-<number> or a watch /robot1/<role> with a role of ours, got '/robot1/self'"
+    assert str(error.value) == f'request_id: {expected}'
+
+
+def test_every_callback_of_a_watch_counts_in_stamp_order_per_vision_system(watching):
+    seen(watching, 'self', '/vs1', square(1.0, 1.0), stamp=1.0)
+    seen(watching, 'self', '/vs2', square(1.02, 1.0), stamp=1.1)
+    first = watching.fix('self')
+    assert (first.position[0], first.stamp, first.vision_systems) == (
+        pytest.approx(1.01),
+        1.1,
+        ('/vs1', '/vs2'),
+    )
+    seen(watching, 'self', '/vs1', square(1.2, 1.0), stamp=1.3)  # it moved; vs2 had nothing new to say
+    seen(watching, 'self', '/vs2', square(1.22, 1.0), stamp=1.3)
+    assert watching.fix('self').position == pytest.approx((1.21, 1.0))
+    assert watching.fix('self').seq == first.seq + 2  # every new answer is a new fix
+    assert seen(watching, 'self', '/vs1', square(1.0, 1.0), stamp=1.2) is None  # late: superseded
+    assert watching.superseded == 1
+    assert watching.fix('self').position == pytest.approx((1.21, 1.0))
+    seen(watching, 'self', '/vs1', square(1.2, 1.0), stamp=1.3)  # the same callback twice
+    assert watching.fix('self').outline.area == pytest.approx(0.09 + 0.02 * 0.3)
+
+
+def test_an_empty_watch_callback_says_that_vision_system_sees_nothing_of_it(watching):
+    seen(watching, 'self', '/vs1', square(1.0, 1.0), stamp=1.0)
+    seen(watching, 'self', '/vs2', square(1.1, 1.0), stamp=1.0)
+    assert not watching.lost('self')
+    seen(watching, 'self', '/vs1', stamp=1.2)  # it left vs1's view
+    seen(watching, 'self', '/vs2', square(1.3, 1.0), stamp=1.2)
+    assert watching.fix('self').position == pytest.approx((1.3, 1.0))
+    assert watching.fix('self').vision_systems == ('/vs2',)
+    seen(watching, 'self', '/vs2', stamp=1.4)
+    assert watching.lost('self')  # nobody sees it: the fix stays, the robot looks for itself
+    assert watching.fix('self').position == pytest.approx((1.3, 1.0))
+    seen(watching, 'self', '/vs3', square(2.0, 1.0), stamp=1.6)
+    assert not watching.lost('self')
+    assert watching.fix('self').position == pytest.approx((2.0, 1.0))
+
+
+def test_a_watch_answer_older_than_the_watch_duration_is_dropped(watching):
+    seen(watching, 'station', '/vs1', square(5.0, 3.0), stamp=1.0)
+    seen(watching, 'station', '/vs2', square(5.02, 3.0), stamp=20.0)  # vs1 left the watch since
+    assert watching.fix('station').vision_systems == ('/vs2',)
+    assert watching.fix('station').position == pytest.approx((5.02, 3.0))
+
+
+def test_watch_answers_for_obstacles_replace_or_clear_a_vision_systems_outlines(watching):
+    newer = seen(watching, 'robot', '/vs1', square(3, 3), square(4, 1), stamp=2.0)
+    assert (newer.role, newer.seq, len(newer.outlines)) == ('robot', WATCH, 2)
+    assert seen(watching, 'robot', '/vs1', square(2.9, 3), stamp=1.9) is None  # older frames
+    assert seen(watching, 'robot', '/vs2', square(2.9, 3), stamp=1.9) is not None  # vs2's own order
+    cleared = seen(watching, 'robot', '/vs1', stamp=2.2)  # nothing seen any more: the memory clears it
+    assert (cleared.vision_system, cleared.outlines) == ('/vs1', ())
+    assert not watching.lost('self')  # no answer for self at all: not lost, unknown
+
+
+# -- the region-of-interest policy ----------------------------------------------------------------
+
+FLOOR = (7.0, 5.5)
+
+
+@pytest.fixture
+def policy():
+    return RegionPolicy(FLOOR, ('obstacle', 'human'), 0.2, self_margin=1.0, roi_margin=0.75, fix_timeout=4.0)
+
+
+def fix_at(x, y, stamp=10.0, half=0.15):
+    return Fix((x, y), box(x - half, y - half, x + half, y + half), stamp, 1, ('/vs1',))
+
+
+def test_before_the_first_fix_itself_and_its_station_over_the_whole_floor(policy):
+    floor = Region(whole_floor(FLOOR), whole_floor(FLOOR))
+    assert policy.regions(10.0, None, None, None) == {'self': floor, 'station': floor}
+    assert policy.regions(10.0, fix_at(1, 1), None, None)['station'] == floor
+
+
+def test_once_found_itself_around_its_predicted_position_and_its_station_in_its_box(policy):
+    station = fix_at(6.0, 3.0, half=0.2)
+    regions = policy.regions(11.0, fix_at(2.0, 2.0), station, (2.1, 2.0))
+    assert regions['self'].box == pytest.approx((0.9, 0.8, 3.3, 3.2))  # radius 0.2 + margin 1.0
+    assert regions['self'].needed == pytest.approx((1.65, 1.55, 2.55, 2.45))  # + a quarter margin
+    assert regions['station'].box == pytest.approx((4.8, 1.8, 7.0, 4.2))  # clipped to the floor
+    assert regions['station'].needed == pytest.approx((5.55, 2.55, 6.45, 3.45))
+    roi = Region(spanned((2.1, 2.0), (6.0, 3.0), 0.75, FLOOR), spanned((2.1, 2.0), (6.0, 3.0), 0.375, FLOOR))
+    assert regions['obstacle'] == regions['human'] == roi
+    assert set(regions) == {'self', 'station', 'obstacle', 'human'}
+
+
+def test_a_moving_robots_region_reaches_half_the_margin_ahead(policy):
+    regions = policy.regions(11.0, fix_at(2.0, 2.0), None, (2.0, 2.0), velocity=(0.0, -0.3))
+    assert regions['self'].box == pytest.approx((0.8, 0.3, 3.2, 2.7))
+    assert regions['self'].needed == pytest.approx((1.55, 1.55, 2.45, 2.45))  # around where it is
+
+
+@pytest.mark.parametrize(
+    'now, lost, tracked',
+    [(12.0, (), True), (12.01, (), False), (11.0, ('self',), False)],
+    ids=['fresh', 'fix-older-than-half-fix-timeout', 'vision-systems-see-nothing'],
+)
+def test_a_robot_that_loses_itself_looks_over_the_whole_floor_again(policy, now, lost, tracked):
+    regions = policy.regions(now, fix_at(2.0, 2.0), fix_at(6.0, 3.0), None, lost=lost)
+    assert (regions['self'].box != whole_floor(FLOOR)) == tracked
+    assert regions['station'].box != whole_floor(FLOOR)
+    assert regions['obstacle'].box == spanned((2.0, 2.0), (6.0, 3.0), 0.75, FLOOR)  # from the last fix

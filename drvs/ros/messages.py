@@ -39,8 +39,11 @@ STATS_COUNTERS = (
     'cache_hits',
     'registrations',
     'objects',
+    'watch_calls',
+    'watches',
+    'watch_evaluations',
 )
-"""The counters of drvs/VisionSystemStats, in the message's order."""
+"""The counters of drvs/VisionSystemStats, in the message's order (``watches`` is a gauge: standing now)."""
 
 ROBOT_STATES = {
     controller.LOCALISING: RobotStatus.LOCALISING,
@@ -56,8 +59,11 @@ ROBOT_COUNTERS = (
     'replans',
     'path_length',
     'requests',
+    'watch_calls',
+    'watches',
     'failed_requests',
     'callbacks',
+    'callback_bytes',
     'refused_callbacks',
     'superseded',
     'obstacles',

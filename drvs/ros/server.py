@@ -37,16 +37,41 @@ algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
   pool is full; ``UNAVAILABLE`` when the master does not answer, or does not list
   a callback service that it listed within ``~callback_memory`` seconds (a
   restarted master, before the robot registered again).
+- ``~watch_object_boundary`` (drvs/WatchObjectBoundary): a robot's standing
+  request (a *watch*, :mod:`drvs.watches`), keyed by its caller id and
+  ``request_id``. ``INVALID``: ``request_id`` empty or too long, ``duration`` not
+  finite or negative, and for a watch to stand (``duration`` > 0) ``period`` not
+  finite or not positive and the same checks as ``~detect_object_boundary``
+  (algorithm, region of interest, callback service), or a ``request_id`` and
+  ``callback_service`` that another caller's watch uses already. ``UNSUPPORTED``
+  as for a request. ``BUSY`` beyond ``~max_watches``. Granted: a period of at least
+  ``~min_watch_period``, a duration of at most ``~max_watch_duration``. The same
+  caller and ``request_id`` again renews it (the region may change); ``duration`` 0
+  cancels it (a cancel of an unknown watch is accepted too; a cancel needs valid
+  ``request_id`` and ``duration`` only). The answer says how many vision systems
+  serve it now (maybe 0: vision systems that cover its region later join).
+  The server forwards the watch to every vision system that covers the region and
+  runs the algorithm — at its sibling ``<namespace>/watch_object_boundary``
+  service, looked up when the vision system registers anew —, renews it there
+  when the caller renews, withdraws it (``duration`` 0) from one that stops
+  covering it or leaves the registry and from all on cancel or expiry. A vision
+  system without a watch service (the paper's interface only) gets one
+  DetectObjectBoundary request per period instead, with the watch's
+  ``request_id`` and callback; that is never counted as a failure. A failed watch
+  forward counts like a failed request forward; a refused one is logged.
 
-Both services limit each caller (its caller id) to ``~max_requests_per_s``
-with bursts of ``~burst`` (a token bucket, :mod:`drvs.rate_limit`); the excess
-is refused with ``RATE_LIMITED``.
+All three services limit each caller (its caller id) to ``~max_requests_per_s``
+with bursts of ``~burst`` (a token bucket per caller, :mod:`drvs.rate_limit`,
+shared by the three); the excess is refused with ``RATE_LIMITED``.
 
-Topic: ``~registry`` (drvs/Registry, latched): every entry's ``service_name``,
-``provider``, ``field_of_view``, ``algorithms`` and ``lease_expiry`` (ROS time), sorted
-by service name (algorithms sorted too), republished after every change (registration,
-move, change of algorithms, unregistration, expiry, removal; not renewals), at most
-once per ``~registry_period``. With each, ``~markers`` (visualization_msgs/MarkerArray,
+Topics: ``~stats`` (drvs/ServerStats, latched): the server's counters (requests,
+watch calls, refusals, forwards of each kind, failures, watches standing),
+republished at most once a second while they change. ``~registry`` (drvs/Registry,
+latched): every entry's ``service_name``, ``provider``, ``field_of_view``,
+``algorithms`` and ``lease_expiry`` (ROS time), sorted by service name (algorithms
+sorted too), republished after every change (registration, move, change of
+algorithms, unregistration, expiry, removal; not renewals), at most once per
+``~registry_period``. With each, ``~markers`` (visualization_msgs/MarkerArray,
 latched, frame ``map``; :mod:`drvs.ros.markers`): a DELETEALL, then every registered
 field of view's outline and name, for RViz.
 
@@ -56,18 +81,20 @@ forwarding pool is full (requests refused ``BUSY``); WARN when no vision system 
 registered, the pool is more than 80 % full, requests were refused ``BUSY`` or
 ``RATE_LIMITED`` in the last second, or a vision system is ejected; OK otherwise.
 Values: registered vision systems, pending and maximum forwards, rate-limited callers
-(those over their share now), ejected vision systems, and refusals per status in the
-last period and since start.
+(those over their share now), ejected vision systems, watches standing, and refusals
+per status in the last period and since start.
 
 Parameters: the fields of :class:`ServerSettings`, each declared with its default,
 meaning and range; README.md's drvs_server table is generated from them.
 
-Background loops (lease expiry, registry publisher) are guarded
+Background loops (lease expiry, registry publisher, watches, stats) are guarded
 (:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
 traceback and the loop restarts; one that keeps failing shuts the node down
-with exit code 1. Logs: info for register (with the algorithms), move, change of
-algorithms, unregister, expiry, removal and ejection, and for every refused
-request; debug per forward.
+with exit code 1. The watch loop follows every change of the registry and runs
+the watches' expiries and one-shots on ROS time. Logs: info for register (with
+the algorithms and whether it serves watches), move, change of algorithms,
+unregister, expiry, removal and ejection, for every refused request and watch
+call, and for each new, cancelled or expired watch; debug per forward.
 """
 
 from __future__ import annotations
@@ -84,11 +111,13 @@ import rospy
 from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
+from drvs.client_cache import ClosingCache
 from drvs.counters import PeriodCounts
 from drvs.dispatch import Busy, Dispatcher
 from drvs.guard import RESTART, LoopGuard
 from drvs.health import Health, server_health
 from drvs.msg import Registry as RegistryMsg
+from drvs.msg import ServerStats
 from drvs.rate_limit import RateLimiter
 from drvs.registry import (
     CHANGED,
@@ -100,10 +129,10 @@ from drvs.registry import (
     Registry,
     algorithm_names,
 )
-from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
+from drvs.ros.conversions import box_to_msg, msg_to_box, polygon_to_points, refusal_to_detect_response
 from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.markers import registry_markers
-from drvs.ros.messages import registry_to_msg
+from drvs.ros.messages import header, registry_to_msg
 from drvs.ros.service_client import (
     MasterUnreachable,
     ServiceCallError,
@@ -120,6 +149,9 @@ from drvs.srv import (
     DetectObjectBoundaryResponse,
     RegisterVisionService,
     RegisterVisionServiceResponse,
+    WatchObjectBoundary,
+    WatchObjectBoundaryRequest,
+    WatchObjectBoundaryResponse,
 )
 from drvs.status import ACCEPTED, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
 from drvs.validation import (
@@ -129,11 +161,39 @@ from drvs.validation import (
     region_of_interest,
     ros_name,
 )
+from drvs.watches import (
+    CANCELLED,
+    NOT_STANDING,
+    ONE_SHOT,
+    WITHDRAWAL,
+    Forward,
+    Watch,
+    WatchTable,
+    watch_terms,
+)
 
 __all__ = ['ServerSettings', 'DrvsServer']
 
 MAX_CALLBACKS_REMEMBERED = 10_000
 """Verified callback services kept; callers choose the names, so the memory is capped."""
+MAX_WATCH_CLIENTS = 4096
+"""Connections to vision systems' watch services kept open (one per vision system)."""
+WATCH_CLIENT_IDLE = 120.0
+"""Seconds a watch service connection may stay unused before it is closed."""
+WATCH_WAIT = 0.5
+"""Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""
+STATS_PERIOD = 1.0
+"""Seconds between two ``~stats`` messages at most."""
+STATS_FIELDS = (
+    'requests',
+    'watch_requests',
+    'refused',
+    'forwards',
+    'watch_forwards',
+    'forward_failures',
+    'fallback_forwards',
+)
+"""The counters of drvs/ServerStats (besides ``watches``, the number standing)."""
 
 
 @dataclass(frozen=True)
@@ -167,7 +227,7 @@ class ServerSettings(Settings):
         1.0, '`retry_after` when the master did not answer', unit='s', check=POSITIVE
     )
     max_requests_per_s: float = param(
-        50.0, 'requests per second per caller id, on both services', unit='/s', check=POSITIVE
+        50.0, 'calls per second per caller id, on all three services', unit='/s', check=POSITIVE
     )
     burst: int = param(100, 'requests a caller may send at once before the rate applies', check=at_least(1))
     check_timeout: float = param(
@@ -184,6 +244,13 @@ class ServerSettings(Settings):
     )
     registry_period: float = param(
         0.2, 'minimum time between two `~registry` messages', unit='s', check=NON_NEGATIVE
+    )
+    min_watch_period: float = param(0.1, 'shortest period a watch is granted', unit='s', check=POSITIVE)
+    max_watch_duration: float = param(
+        60.0, 'longest duration a watch is granted (it expires unless renewed)', unit='s', check=POSITIVE
+    )
+    max_watches: int = param(
+        1000, 'watches standing at once; beyond it new watches are refused `BUSY`', check=at_least(1)
     )
 
     def __post_init__(self):
@@ -228,6 +295,19 @@ class DrvsServer:
         self._changed = threading.Condition()
         self._dirty = True
         self._registry_publisher = None
+        self.watches = WatchTable(
+            self.registry,
+            rospy.get_time,
+            min_period=settings.min_watch_period,
+            max_duration=settings.max_watch_duration,
+            max_watches=settings.max_watches,
+            busy_retry_after=settings.busy_retry_after,
+        )
+        self._watch_lock = threading.Lock()  # guards watches, and keeps their forwards in order
+        self._watch_wake = threading.Event()  # set when the registry changed or a forward failed
+        self._watch_clients = ClosingCache(self._make_watch_client, MAX_WATCH_CLIENTS, WATCH_CLIENT_IDLE)
+        self._stats_lock = threading.Lock()  # guards stats
+        self.stats = dict.fromkeys(STATS_FIELDS, 0)
         self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
         self.refusals = PeriodCounts()  # refusals by status name, for the health report
         self.diagnostics = DiagnosticsPublisher(
@@ -239,32 +319,41 @@ class DrvsServer:
         self.algorithms = default_algorithms()
         self._registry_publisher = rospy.Publisher('~registry', RegistryMsg, queue_size=1, latch=True)
         self._markers_publisher = rospy.Publisher('~markers', MarkerArray, queue_size=1, latch=True)
+        self._stats_publisher = rospy.Publisher('~stats', ServerStats, queue_size=1, latch=True)
         self.dispatcher.start()
         self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
         self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
+        self.guard.spawn(self._watch_loop, 'watches', RESTART)
+        self.guard.spawn(self._stats_loop, 'stats-publisher', RESTART)
         rospy.Service('~register_vision_service', RegisterVisionService, self.handle_register)
         rospy.Service('~detect_object_boundary', DetectObjectBoundary, self.handle_detect)
+        rospy.Service('~watch_object_boundary', WatchObjectBoundary, self.handle_watch)
         self.diagnostics.start()
         rospy.loginfo(
             'DRVS server ready: lease %g s, max_failures %d, forward_timeout %g s, %d workers, '
-            'rate limit %g/s (burst %d) per caller; algorithms checked in full: %s',
+            'rate limit %g/s (burst %d) per caller; watches: period at least %g s, duration at most %g s; '
+            'algorithms checked in full: %s',
             self.settings.lease,
             self.settings.max_failures,
             self.settings.forward_timeout,
             self.settings.workers,
             self.settings.max_requests_per_s,
             self.settings.burst,
+            self.settings.min_watch_period,
+            self.settings.max_watch_duration,
             ', '.join(self.algorithms.names()),
         )
 
     def stop(self) -> None:
         self._stopping.set()
         self.diagnostics.stop()
+        self._watch_wake.set()
         with self._changed:
             self._changed.notify_all()
         self.dispatcher.stop(timeout=self.settings.forward_timeout + 1.0)
         for entry in self.registry.entries():
             self._close(self.registry.unregister(entry.service_name))
+        self._watch_clients.clear()
 
     # -- refusals ----------------------------------------------------------------------------
     def _rate_limit(self, request) -> Refusal | None:
@@ -289,15 +378,26 @@ class DrvsServer:
         )
 
     def _refuse_detect(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
+        self._log_refusal('request', request, refusal)
+        return refusal_to_detect_response(refusal)
+
+    def _refuse_watch(self, request, refusal: Refusal) -> WatchObjectBoundaryResponse:
+        self._log_refusal('watch call', request, refusal)
+        return WatchObjectBoundaryResponse(
+            accepted=False, status=refusal.status, message=refusal.message, retry_after=refusal.retry_after
+        )
+
+    def _log_refusal(self, what: str, request, refusal: Refusal) -> None:
         self.refusals.add(name(refusal.status))
+        self._count(refused=1)
         rospy.loginfo(
-            'request %r from %s refused (%s): %s',
+            '%s %r from %s refused (%s): %s',
+            what,
             request.request_id,
             _caller(request) or '?',
             name(refusal.status),
             refusal.message,
         )
-        return refusal_to_detect_response(refusal)
 
     # -- registration ------------------------------------------------------------------------
     def handle_register(self, request) -> RegisterVisionServiceResponse:
@@ -332,11 +432,13 @@ class DrvsServer:
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
         if entry is not None and entry.provider == caller:  # a renewal or move by the verified provider
-            instance = entry.instance
+            instance, watch_service = entry.instance, entry.watch_service
         else:
+            provider = caller or '(no caller id)'
             instance = self._check_service(
-                'service_name', service, DetectObjectBoundary, provider_must_be=caller or '(no caller id)'
+                'service_name', service, DetectObjectBoundary, provider_must_be=provider
             ).uri
+            watch_service = self._has_watch_service(service, provider)
         try:
             change = self.registry.register(
                 service,
@@ -345,16 +447,20 @@ class DrvsServer:
                 make_client=self._make_client,
                 instance=instance,
                 algorithms=sorted(algorithms),
+                watch_service=watch_service,
             )
         except ValidationError as error:
             raise Refusal(INVALID, f'{error} (service_name {service})') from None
         if change == REGISTERED:
+            with self._watch_lock:  # a restarted vision system holds no watches: forward them again
+                self.watches.forget(service)
             rospy.loginfo(
-                'registered %s by %s: field of view %s, algorithms %s',
+                'registered %s by %s: field of view %s, algorithms %s; %s',
                 service,
                 caller,
                 points,
                 ', '.join(sorted(algorithms)),
+                'a watch service' if watch_service else 'no watch service (watches by one-shot requests)',
             )
         elif change == MOVED:
             rospy.loginfo(
@@ -397,6 +503,28 @@ class DrvsServer:
         return ServiceClient(
             service, DetectObjectBoundary, self.settings.forward_timeout, caller_id=rospy.get_name()
         )
+
+    def _make_watch_client(self, service: str) -> ServiceClient:
+        return ServiceClient(
+            service, WatchObjectBoundary, self.settings.forward_timeout, caller_id=rospy.get_name()
+        )
+
+    def _has_watch_service(self, service: str, provider: str) -> bool:
+        """Whether the vision system of ``service`` serves watches: its sibling
+        ``watch_object_boundary`` is a drvs/WatchObjectBoundary of the same node.
+
+        :raises Refusal: ``UNAVAILABLE`` when the master did not answer.
+        """
+        try:
+            self._check_service(
+                'watch service', watch_service_of(service), WatchObjectBoundary, provider_must_be=provider
+            )
+        except Refusal as refusal:
+            if refusal.status != INVALID:
+                raise
+            rospy.logdebug('%s: %s', service, refusal.message)
+            return False
+        return True
 
     def _close(self, entry: Registration | None) -> None:
         """Drop what the server still holds for a removed entry: queued forwards, its connection."""
@@ -443,6 +571,7 @@ class DrvsServer:
 
     # -- requests ----------------------------------------------------------------------------
     def handle_detect(self, request) -> DetectObjectBoundaryResponse:
+        self._count(requests=1)
         try:
             return self._detect(request)
         except Refusal as refusal:
@@ -463,12 +592,7 @@ class DrvsServer:
         limited = self._rate_limit(request)
         if limited:
             raise limited
-        try:
-            algorithm = self._algorithm_name(request.algorithm)
-            region = region_of_interest(msg_to_box(request.region_of_interest))
-            global_ros_name('callback_service', request.callback_service)
-        except (AlgorithmError, ValidationError) as error:
-            raise Refusal(INVALID, str(error)) from None
+        algorithm, region = self._request_fields(request)
         self._check_callback(request.callback_service)
         names = self.registry.match(region, algorithm)
         if not names:
@@ -495,6 +619,19 @@ class DrvsServer:
             accepted=True, status=ACCEPTED, message=message, vision_systems=len(accepted)
         )
 
+    def _request_fields(self, request) -> tuple[str, tuple[float, float, float, float]]:
+        """The algorithm's NAME and the region of a request or watch, its callback name checked.
+
+        :raises Refusal: ``INVALID`` naming the field.
+        """
+        try:
+            algorithm = self._algorithm_name(request.algorithm)
+            region = region_of_interest(msg_to_box(request.region_of_interest))
+            global_ros_name('callback_service', request.callback_service)
+        except (AlgorithmError, ValidationError) as error:
+            raise Refusal(INVALID, str(error)) from None
+        return algorithm, region
+
     def _algorithm_name(self, text: str) -> str:
         """The NAME of the request's algorithm, checked in full if the server knows it, else its syntax.
 
@@ -510,6 +647,18 @@ class DrvsServer:
 
         :raises Refusal: ``UNSUPPORTED`` when vision systems are registered and none runs ``algorithm``.
         """
+        available = self._check_supported(algorithm)
+        if available and self.registry.match(region):
+            message = f'no vision system that runs {algorithm!r} covers the region of interest'
+        else:
+            message = 'no vision system covers the region of interest'
+        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message=message, vision_systems=0)
+
+    def _check_supported(self, algorithm: str) -> list[str]:
+        """The algorithms the live vision systems run (none while nobody is registered).
+
+        :raises Refusal: ``UNSUPPORTED`` when vision systems are registered and none runs ``algorithm``.
+        """
         available = self.registry.available_algorithms()
         if available and algorithm not in available:
             raise Refusal(
@@ -517,11 +666,75 @@ class DrvsServer:
                 f'algorithm: no registered vision system runs {algorithm!r}; '
                 f'available: {", ".join(available)}',
             )
-        if available and self.registry.match(region):
-            message = f'no vision system that runs {algorithm!r} covers the region of interest'
-        else:
-            message = 'no vision system covers the region of interest'
-        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message=message, vision_systems=0)
+        return available
+
+    # -- watches -----------------------------------------------------------------------------
+    def handle_watch(self, request) -> WatchObjectBoundaryResponse:
+        self._count(watch_requests=1)
+        try:
+            return self._watch(request)
+        except Refusal as refusal:
+            return self._refuse_watch(request, refusal)
+        except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
+            return self._refuse_watch(request, self._internal_error('watch call', error))
+
+    def _watch(self, request) -> WatchObjectBoundaryResponse:
+        limited = self._rate_limit(request)
+        if limited:
+            raise limited
+        caller = _caller(request)
+        try:
+            stands = watch_terms(request.request_id, request.period, request.duration)
+        except ValidationError as error:
+            raise Refusal(INVALID, str(error)) from None
+        algorithm, region = self._request_fields(request) if stands else ('', (0.0, 0.0, 0.0, 0.0))
+        if stands:
+            self._check_callback(request.callback_service)
+            self._check_supported(algorithm)
+        with self._watch_lock:
+            try:
+                answer = self.watches.request(
+                    caller,
+                    request.request_id,
+                    request.algorithm,
+                    algorithm,
+                    region,
+                    request.callback_service,
+                    request.period,
+                    request.duration,
+                    request.changes_only,
+                )
+            except ValidationError as error:
+                raise Refusal(INVALID, str(error)) from None
+            self._submit(answer.forwards)
+            serving = self.watches.serving((caller, request.request_id))
+        return WatchObjectBoundaryResponse(
+            accepted=True,
+            status=ACCEPTED,
+            message=_watch_message(answer.change, request.request_id, len(serving)),
+            vision_systems=len(serving),
+            period=answer.period,
+            duration=answer.duration,
+        )
+
+    def _submit(self, forwards: list[Forward]) -> None:
+        """Queue watch forwards in order (the caller holds ``_watch_lock``); one that finds no room
+        is left to the watch table (:meth:`WatchTable.undelivered`)."""
+        for forward in forwards:
+            one_shot = forward.kind == ONE_SHOT
+            destination = forward.vision_system if one_shot else watch_service_of(forward.vision_system)
+            try:
+                accepted, _ = self.dispatcher.submit([destination], forward)
+            except Busy:
+                accepted = []
+            if not accepted:
+                rospy.logdebug(
+                    '%s of watch %r to %s not sent: too many forwards pending',
+                    forward.kind,
+                    forward.watch.request_id,
+                    destination,
+                )
+                self.watches.undelivered(forward)
 
     def _check_callback(self, service: str) -> None:
         """Check the callback service, trusting a check made within ``~callback_cache`` seconds.
@@ -550,18 +763,53 @@ class DrvsServer:
             self._callbacks[service] = now
 
     # -- forwarding (worker threads) ---------------------------------------------------------
-    def _forward(self, service: str, request) -> None:
-        entry = self.registry.get(service)
+    def _forward(self, destination: str, item) -> None:
+        """Send one queued item: a robot's request, or a watch's :class:`Forward`."""
+        if isinstance(item, Forward) and item.kind != ONE_SHOT:
+            self._forward_watch(destination, item)
+            return
+        entry = self.registry.get(destination)
         if entry is None or entry.client is None:  # removed while the forward was queued
             return
+        if isinstance(item, Forward):
+            self._count(forwards=1, fallback_forwards=1)
+            what = f'one-shot of watch {item.watch.request_id!r}'
+            self._call(destination, entry.client, one_shot_request(item.watch), what)
+        else:
+            self._count(forwards=1)
+            self._call(destination, entry.client, item, f'forward of {item.request_id!r}')
+
+    def _forward_watch(self, destination: str, forward: Forward) -> None:
+        service = forward.vision_system
+        if forward.kind != WITHDRAWAL and service not in self.registry:  # removed while queued
+            return
+        self._count(watch_forwards=1)
+        what = f'{forward.kind} of watch {forward.watch.request_id!r}'
+        answer = self._call(service, self._watch_clients.get(destination), watch_request(forward), what)
+        if answer is None:
+            with self._watch_lock:
+                self.watches.undelivered(forward)
+            self._watch_wake.set()
+        elif not answer.accepted:
+            rospy.logwarn('%s refused by %s (%s): %s', what, destination, name(answer.status), answer.message)
+
+    def _call(self, service: str, client: ServiceClient, request, what: str):
+        """Send ``request`` through ``client``; its answer, or None when it failed.
+
+        A failure counts against the registered vision system ``service`` (and may remove
+        and eject it, :meth:`Registry.record_failure`); a success clears its failures. A
+        call to a vision system no longer registered (a withdrawal) counts for neither.
+        """
         started = time.monotonic()
         try:
-            answer = entry.client.call(request)
+            answer = client.call(request)
         except ServiceCallError as error:
+            self._count(forward_failures=1)
+            if service not in self.registry:
+                rospy.loginfo('%s to %s failed (no longer registered): %s', what, client.service, error)
+                return None
             failures = self.registry.failures(service) + 1
-            rospy.logwarn(
-                'forward of %r to %s failed (%d in a row): %s', request.request_id, service, failures, error
-            )
+            rospy.logwarn('%s to %s failed (%d in a row): %s', what, client.service, failures, error)
             removed = self.registry.record_failure(service)
             if removed is not None:
                 rospy.logwarn(
@@ -572,16 +820,18 @@ class DrvsServer:
                 )
                 self._close(removed)
                 self._mark_changed()
-            return
-        self.registry.record_success(service)
+            return None
+        if service in self.registry:
+            self.registry.record_success(service)
         rospy.logdebug(
-            'forwarded %r to %s in %.1f ms: status %s %s',
-            request.request_id,
-            service,
+            '%s to %s in %.1f ms: status %s %s',
+            what,
+            client.service,
             (time.monotonic() - started) * 1000,
             name(answer.status),
             answer.message,
         )
+        return answer
 
     # -- background loops --------------------------------------------------------------------
     def _expire_loop(self) -> None:
@@ -596,6 +846,40 @@ class DrvsServer:
         with self._changed:
             self._dirty = True
             self._changed.notify()
+        self._watch_wake.set()
+
+    def _watch_loop(self) -> None:
+        """Follow the registry's changes, expire watches, send one-shots when due (ROS time)."""
+        while not self._stopping.is_set():
+            self._watch_wake.clear()
+            with self._watch_lock:
+                self._submit(self.watches.sync())
+                due = self.watches.next_due()
+            self._watch_clients.expire()
+            wait = WATCH_WAIT if due is None else min(max(due - rospy.get_time(), 0.001), WATCH_WAIT)
+            self._watch_wake.wait(wait)
+
+    def _count(self, **increments: int) -> None:
+        with self._stats_lock:
+            for key, number in increments.items():
+                self.stats[key] += number
+
+    def stats_msg(self) -> ServerStats:
+        """The counters now (drvs/ServerStats), stamped with ROS time."""
+        with self._stats_lock:
+            counts = dict(self.stats)
+        return ServerStats(header=header(rospy.get_time()), watches=len(self.watches), **counts)
+
+    def _stats_loop(self) -> None:
+        last = None
+        while True:
+            message = self.stats_msg()
+            counts = tuple(getattr(message, key) for key in (*STATS_FIELDS, 'watches'))
+            if counts != last:
+                self._stats_publisher.publish(message)
+                last = counts
+            if self._stopping.wait(STATS_PERIOD):
+                return
 
     def _publish_loop(self) -> None:
         stop = self._stopping
@@ -627,8 +911,51 @@ class DrvsServer:
             refusals_recent=recent,
             rate_limited_callers=self.rate_limiter.limited(),
             ejected=self.registry.ejected(),
+            watches=len(self.watches),
         )
 
     def registry_msg(self) -> RegistryMsg:
         """The registry now, with each lease's expiry in ROS time."""
         return registry_to_msg(self.registry.entries(), rospy.get_time(), self.registry.clock())
+
+
+def watch_service_of(service: str) -> str:
+    """The watch service of the vision system whose DetectObjectBoundary is ``service``: its sibling.
+
+    >>> watch_service_of('/cam1/detect_object_boundary')
+    '/cam1/watch_object_boundary'
+    """
+    return rosgraph.names.ns_join(rosgraph.names.namespace(service), 'watch_object_boundary')
+
+
+def one_shot_request(watch: Watch) -> DetectObjectBoundaryRequest:
+    """The DetectObjectBoundary request that serves ``watch`` once, to a vision system without watches."""
+    return DetectObjectBoundaryRequest(
+        algorithm=watch.algorithm,
+        region_of_interest=box_to_msg(watch.region),
+        callback_service=watch.callback_service,
+        request_id=watch.request_id,
+    )
+
+
+def watch_request(forward: Forward) -> WatchObjectBoundaryRequest:
+    """The WatchObjectBoundary forward of ``forward`` (a new watch, a renewal or a withdrawal)."""
+    watch = forward.watch
+    return WatchObjectBoundaryRequest(
+        algorithm=watch.algorithm,
+        region_of_interest=box_to_msg(watch.region),
+        callback_service=watch.callback_service,
+        request_id=watch.request_id,
+        period=watch.period,
+        duration=forward.duration,
+        changes_only=watch.changes_only,
+    )
+
+
+def _watch_message(change: str, request_id: str, serving: int) -> str:
+    if change == CANCELLED:
+        return f'watch {request_id!r} cancelled'
+    if change == NOT_STANDING:
+        return f'no watch {request_id!r} stands: nothing to cancel'
+    served = '1 vision system serves' if serving == 1 else f'{serving} vision systems serve'
+    return f'watch {request_id!r} {change}; {served} it'

@@ -28,6 +28,18 @@ runs the algorithm, puts the outlines on the floor in ``map``
 (:mod:`drvs.vision`) and, only if it found at least one object, calls the
 robot back with the frame's stamp (the moment it shows).
 
+Watches (standing requests, ``~watch_object_boundary``): the same question asked
+once for every ``period`` seconds during ``duration`` seconds, named by
+(``callback_service``, ``request_id``); the same key again renews it (the region
+may change), ``duration`` 0 cancels it. The period granted is at least
+``~min_watch_period``, the duration at most ``~max_watch_duration``. One guarded
+thread sleeps until a watch is due (ROS time), takes one frame for every watch due
+then and none while nobody watches, runs each watch's algorithm on its region and
+calls back as for a request: every period when something was found, or with
+``changes_only`` only when the outlines moved beyond ``~change_tolerance``, plus
+one callback with no objects when what it had reported is gone. The bookkeeping
+and the rules are :mod:`drvs.watch_runner`'s.
+
 Frames from a topic: a request uses the newest frame if it is younger than
 ``~max_frame_age``, otherwise it waits for the next one up to
 ``~frame_timeout``. A feed without frames for ``~stale_after`` seconds
@@ -49,7 +61,7 @@ with jitter and growing backoff (:func:`drvs.retry.retry_delay`, at most
 ``~retry_period`` beyond ``retry_after``); after ``INVALID`` it logs the reason as
 an error and retries every ``~retry_period``.
 
-Background loops (registration, workers, debug view) are guarded
+Background loops (registration, workers, watches, debug view) are guarded
 (:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
 traceback and the loop restarts; one that keeps failing shuts the node down
 (exit code 1).
@@ -61,11 +73,17 @@ Topics and services:
 
 ``~detect_object_boundary`` (drvs/DetectObjectBoundary)
     e.g. ``/vs1/detect_object_boundary``.
+``~watch_object_boundary`` (drvs/WatchObjectBoundary)
+    Its sibling, e.g. ``/vs1/watch_object_boundary``: ``INVALID`` naming the field,
+    ``UNAVAILABLE`` while the feed is stale, ``BUSY`` beyond ``~max_watches``; accepted
+    with ``vision_systems`` 1 and the granted ``period`` and ``duration`` (a cancel: 0, 0, 0).
 ``~stats`` (drvs/VisionSystemStats, latched)
     ``requests``, ``refused``, ``callbacks``, ``callback_failures``, ``callback_bytes``
     (serialized size of the callbacks sent), ``renders`` (frames rendered or decoded),
     ``no_frame`` (accepted requests dropped because no frame came), ``cache_hits``,
-    ``registrations``, ``objects``, and accepted requests per algorithm string
+    ``registrations``, ``objects``, ``watch_calls`` (accepted watch calls: new, renewed,
+    cancelled), ``watches`` (standing now), ``watch_evaluations`` (one watch on one frame),
+    and accepted requests per algorithm string
     (``algorithms`` and ``algorithm_requests``, at most ``MAX_ALGORITHMS_COUNTED``
     distinct ones, the rest under ``other``); republished when they change.
 ``~debug_image`` (sensor_msgs/Image, rgb8)
@@ -81,7 +99,7 @@ Topics and services:
     yet) and for a registration refused ``INVALID``; WARN when not registered (why: the
     server's refusal or the failed call), the request queue nearly full, or callbacks
     failed in the last second; OK otherwise. Values: registered, source, frame age,
-    ``~stale_after``, queue length and size, callbacks and failures in the last period,
+    ``~stale_after``, queue length and size, watches, callbacks and failures in the last period,
     the last registration refusal and error.
 ``/tf_static`` or ``/tf`` (``render`` only): ``map`` -> ``<camera>_optical_frame``
     The camera's optical frame (z forward, x right, y down), as sim_camera publishes it:
@@ -130,11 +148,14 @@ from drvs.srv import (
     DetectObjectBoundaryResponse,
     RegisterVisionService,
     RegisterVisionServiceRequest,
+    WatchObjectBoundary,
+    WatchObjectBoundaryResponse,
 )
 from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
 from drvs.vision import draw_detections, locate_labelled
+from drvs.watch_runner import Terms, WatchRunner, parse_watch
 from drvs.world import load_world
 
 DEFAULT_LEASE = 10.0
@@ -145,6 +166,10 @@ MAX_ALGORITHMS_COUNTED = 64
 
 POSE_RATE = 10.0
 """Times per second a camera on a moving mount (``render``) puts its pose on tf."""
+
+WATCH_POLL = 0.05
+"""Longest wall-clock sleep of the watch loop: it looks again at the time of the next due watch
+(ROS time, which may run slower or faster than the wall under ``/use_sim_time``) and for new watches."""
 
 
 SOURCES = ('render', 'topic')
@@ -234,6 +259,24 @@ class VisionSystemParams(Settings):
     queue_size: int = param(
         32, 'requests waiting for a worker; beyond it requests are refused `BUSY`', check=at_least(1)
     )
+    min_watch_period: float = param(
+        0.1,
+        'shortest period granted to a watch; a shorter one asked for is lengthened',
+        unit='s',
+        check=POSITIVE,
+    )
+    max_watch_duration: float = param(
+        60.0, 'longest duration granted to a watch: it expires then unless renewed', unit='s', check=POSITIVE
+    )
+    max_watches: int = param(
+        256, 'watches standing at once; beyond it new watches are refused `BUSY`', check=at_least(1)
+    )
+    change_tolerance: float = param(
+        0.03,
+        '`changes_only` watches: how far an outline moves before it is reported again',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
     register_service: str = param('/drvs/register_vision_service', "the DRVS server's RegisterVisionService")
     register_timeout: float = param(2.0, 'limit on one registration call', unit='s', check=POSITIVE)
     retry_period: float = param(
@@ -268,8 +311,10 @@ class VisionSystemParams(Settings):
 
 @dataclass(frozen=True)
 class Job:
+    """A one-shot request, queued for a worker. Like a watch's :class:`drvs.watch_runner.Terms`, it
+    names the algorithm (parsed), the callback service and the request id a callback carries."""
+
     algorithm: object
-    algorithm_text: str
     region: tuple[float, float, float, float]
     callback_service: str
     request_id: str
@@ -300,6 +345,9 @@ class VisionSystemNode:
             ttl=params.callback_idle,
         )
         self._jobs: queue.Queue = queue.Queue(maxsize=params.queue_size)
+        self.watches = WatchRunner(
+            params.min_watch_period, params.max_watch_duration, params.change_tolerance, params.max_watches
+        )
         self._stopping = threading.Event()
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._registered: list | None = None
@@ -328,6 +376,8 @@ class VisionSystemNode:
             self.guard.spawn(self._work, f'worker{index}', RESTART)
         service = rospy.Service('~detect_object_boundary', DetectObjectBoundary, self._handle_detect)
         self.service_name = service.resolved_name
+        self.guard.spawn(self._watch_loop, 'watches', RESTART)
+        rospy.Service('~watch_object_boundary', WatchObjectBoundary, self._handle_watch)
         self.guard.spawn(self._registration_loop, 'registration', RESTART)  # after the service is advertised
         if self.params.debug_rate > 0:
             self.guard.spawn(self._debug_loop, 'debug', RESTART)
@@ -378,7 +428,7 @@ class VisionSystemNode:
         self._count_algorithm(request.algorithm)
         if algorithm.algorithm.streaming:
             self._streaming_until = arrival + self.params.motion_window
-        job = Job(algorithm, request.algorithm, region, request.callback_service, request.request_id, arrival)
+        job = Job(algorithm, region, request.callback_service, request.request_id, arrival)
         try:
             self._jobs.put_nowait(job)
         except queue.Full:
@@ -403,6 +453,63 @@ class VisionSystemNode:
             refusal.message,
         )
         return refusal_to_detect_response(refusal)
+
+    def _handle_watch(self, request) -> WatchObjectBoundaryResponse:
+        now = rospy.get_time()
+        try:
+            terms = parse_watch(
+                request.algorithm,
+                msg_to_box(request.region_of_interest),
+                request.callback_service,
+                request.request_id,
+                request.period,
+                request.duration,
+                request.changes_only,
+                self.algorithms,
+            )
+            if terms is None:
+                cancelled = self.watches.cancel((request.callback_service, request.request_id))
+                self._count(watch_calls=1)
+                self._note_watches()
+                if cancelled:
+                    rospy.loginfo('%s: watch %r cancelled', rospy.get_name(), request.request_id)
+                return WatchObjectBoundaryResponse(accepted=True, status=ACCEPTED)
+            problem = self.source.unavailable()
+            if problem:
+                raise Refusal(UNAVAILABLE, problem, self.params.retry_period)
+            grant = self.watches.stand(terms, float(request.duration), now)
+        except (AlgorithmError, ValidationError) as error:
+            return self._refuse_watch(request, Refusal(INVALID, str(error)))
+        except Refusal as refusal:
+            return self._refuse_watch(request, refusal)
+        self._count(watch_calls=1)
+        self._note_watches()
+        if grant.new:
+            self._count_algorithm(request.algorithm)
+            rospy.loginfo(
+                '%s: watch %r (%s) every %g s for %g s%s',
+                rospy.get_name(),
+                request.request_id,
+                request.algorithm,
+                grant.period,
+                grant.duration,
+                ', changes only' if terms.changes_only else '',
+            )
+        return WatchObjectBoundaryResponse(
+            accepted=True, status=ACCEPTED, vision_systems=1, period=grant.period, duration=grant.duration
+        )
+
+    def _refuse_watch(self, request, refusal: Refusal) -> WatchObjectBoundaryResponse:
+        rospy.loginfo(
+            '%s: refused watch %r (%s): %s',
+            rospy.get_name(),
+            request.request_id,
+            status_name(refusal.status),
+            refusal.message,
+        )
+        return WatchObjectBoundaryResponse(
+            accepted=False, status=refusal.status, message=refusal.message, retry_after=refusal.retry_after
+        )
 
     def _work(self) -> None:
         while not self._stopping.is_set():
@@ -437,7 +544,7 @@ class VisionSystemNode:
             ' (cached frame)' if reused else '',
         )
         if found:
-            self._call_back(job, frame, found)
+            self._call_back(job, frame.stamp, found)
 
     def _stream_loop(self) -> None:
         """While motion requests come (``~motion_window``), feed the algorithms with memory the
@@ -454,31 +561,79 @@ class VisionSystemNode:
             for algorithm in streaming:
                 algorithm.observe(frame)
 
-    def _call_back(self, job: Job, frame: Frame, found) -> None:
+    def _watch_loop(self) -> None:
+        """Sleep until a watch is due, then evaluate every due watch on one frame."""
+        while not self._stopping.wait(self._until_next_watch()):
+            now = rospy.get_time()
+            due = self.watches.due(now)
+            self._note_watches()  # due() drops the expired ones
+            if due:
+                self._evaluate_watches(due, now)
+
+    def _until_next_watch(self) -> float:
+        """Wall seconds to sleep: until the next watch is due (read as ROS seconds), at most WATCH_POLL."""
+        next_due = self.watches.next_due()
+        if next_due is None:
+            return WATCH_POLL
+        return min(max(next_due - rospy.get_time(), 0.0), WATCH_POLL)
+
+    def _evaluate_watches(self, due: list[Terms], now: float) -> None:
+        try:
+            frame, _ = self.source.frame(now)
+        except FrameUnavailable as error:
+            self._count(no_frame=1)
+            rospy.logwarn_throttle(5.0, '%s: %d watch(es) skipped: %s', rospy.get_name(), len(due), error)
+            return
+        streaming = {terms.algorithm.algorithm for terms in due if terms.algorithm.algorithm.streaming}
+        if streaming:  # as for a request: the model sees the frame it judges, and the stream goes on
+            self._streaming_until = max(self._streaming_until, now + self.params.motion_window)
+        for algorithm in streaming:
+            algorithm.observe(frame)
+        for terms in due:
+            try:
+                found = locate_labelled(frame, terms.algorithm, terms.region)
+            except Exception:  # one watch that fails must not stop the others
+                rospy.logerr(
+                    '%s: watch %r failed:\n%s', rospy.get_name(), terms.request_id, traceback.format_exc()
+                )
+                continue
+            self._count(watch_evaluations=1)
+            objects = self.watches.evaluate(terms, found)
+            if objects is not None and not self._call_back(terms, frame.stamp, objects):
+                self.watches.callback_failed(terms)
+
+    def _call_back(self, asked: Job | Terms, stamp: float, found) -> bool:
+        """Send ``found`` ((outline, label) pairs; [] for a watch's "all gone") seen in a frame of
+        ``stamp`` to the caller of a request or a watch; whether the call arrived."""
         request = CallbackCoordinatesRequest(
-            algorithm=job.algorithm_text,
-            request_id=job.request_id,
+            algorithm=asked.algorithm.text,
+            request_id=asked.request_id,
             vision_system=self.service_name,
-            stamp=rospy.Time.from_sec(frame.stamp),
+            stamp=rospy.Time.from_sec(stamp),
             objects=[points_to_detected_object(outline, label) for outline, label in found],
         )
         buffer = io.BytesIO()
         request.serialize(buffer)
-        client = self._callback_clients.get(job.callback_service)
+        client = self._callback_clients.get(asked.callback_service)
         self._callbacks_period.add('attempted')
         try:
             client.call(request)
         except ServiceCallError as error:
             self._count(callback_failures=1)
             self._callbacks_period.add('failed')
-            rospy.logwarn('%s: callback for request %r dropped: %s', rospy.get_name(), job.request_id, error)
+            rospy.logwarn(
+                '%s: callback for request %r dropped: %s', rospy.get_name(), asked.request_id, error
+            )
+            arrived = False
         else:
             self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(found))
+            arrived = True
         if self.markers_pub.get_num_connections() > 0:  # after the callback: the robot waits, RViz can
             outlines = [outline for outline, _ in found]
             self.markers_pub.publish(
-                detection_markers(self.service_name, job.algorithm_text, outlines, request.stamp)
+                detection_markers(self.service_name, asked.algorithm.text, outlines, request.stamp)
             )
+        return arrived
 
     # -- registration --------------------------------------------------------------------------
     def _registration_loop(self) -> None:
@@ -590,6 +745,7 @@ class VisionSystemNode:
             stale_after=self.params.stale_after,
             queue_length=self._jobs.qsize(),
             queue_size=self.params.queue_size,
+            watches=len(self.watches),
             callback_failures_recent=callbacks.get('failed', 0),
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=status,
@@ -601,6 +757,15 @@ class VisionSystemNode:
             for key, value in increments.items():
                 self.stats[key] += value
         self._publish_stats()
+
+    def _note_watches(self) -> None:
+        """``watches`` in ``~stats``: the watches standing now (published when it changes)."""
+        standing = len(self.watches)
+        with self._stats_lock:
+            changed = self.stats['watches'] != standing
+            self.stats['watches'] = standing
+        if changed:
+            self._publish_stats()
 
     def _count_algorithm(self, algorithm: str) -> None:
         with self._stats_lock:
@@ -657,9 +822,10 @@ def _moved(old, new, threshold: float) -> bool:
 
 
 def _tag_heights(world) -> dict[str, float]:
-    """{"FAMILY:ID": height} of the tags the world file puts on top of its robot and station."""
+    """{"FAMILY:ID": height} of the tags the world file puts on top of its robots and stations."""
     return {
         f'{body.tag.family}:{body.tag.id}': float(body.size[2])
-        for body in (world.robot, world.station)
-        if getattr(body, 'tag', None) is not None
+        for robot in world.robots
+        for body in (robot.body, robot.station)
+        if body.tag is not None
     }

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """A scripted fake DRVS for the blind robot's tests: no rendering, no vision systems, no world_sim.
 
-Serves ``~detect_object_boundary`` (run it as ``__name:=drvs``), moves the
-robot body kinematically from ``/robot/cmd_vel`` (velocity in ``map``, capped at
+Serves ``~detect_object_boundary`` and ``~watch_object_boundary`` (run it as
+``__name:=drvs``), moves the robot body kinematically from ``/robot/cmd_vel`` (velocity in ``map``, capped at
 the world's robot speed, stopped at any object it would touch, counting
 contacts) and answers each request like DRVS would: ``~latency`` seconds later,
 one callback per fake camera that covers the region of interest *and* sees an
@@ -10,6 +10,12 @@ object of the requested colour there (the west camera sees x < 60 % of the
 floor, the east one x > 40 %, so objects in the middle are seen twice, a few
 millimetres apart), in random order, each sent twice when ``~duplicate``.
 The outlines are the objects' true footprints at the time of the request.
+
+A watch (keyed by callback service and request id; duration 0 cancels it) is
+evaluated every period (at least ``STEP`` seconds) until it expires: each fake
+camera that covers its region calls back like a one-shot answer — with
+``changes_only``, only when what it sees changed, and once with no objects when
+all it had reported is gone; a new watch or a renewal reports in full.
 
 Objects named in ``~hidden`` (comma-separated) are absent until the robot comes
 within ``~appear_distance`` metres of them: an obstacle that steps onto its path.
@@ -23,11 +29,13 @@ and ``~refuse_message``, and no callback; every acknowledgement is held back
 Parameters: ``~world`` (required), ``~output`` (JSON lines, required),
 ``~latency`` (0.15), ``~duplicate`` (true), ``~hidden`` (''),
 ``~appear_distance`` (0.9), ``~cameras`` (2; 0 = no vision system covers anything),
-``~refuse_first`` (0), ``~refuse_status`` (2, BUSY), ``~refuse_retry_after`` (0.3),
-``~refuse_message`` ('refused by the fake DRVS'), ``~ack_delay`` (0).
+``~refuse_first`` (0, one-shot requests and watch calls together), ``~refuse_status``
+(2, BUSY), ``~refuse_retry_after`` (0.3), ``~refuse_message`` ('refused by the fake
+DRVS'), ``~ack_delay`` (0).
 
 Output lines (``kind``): ``request`` (time, role, request_id, roi, vision_systems,
-status name, retry_after), ``appear`` (name, robot), ``truth`` every 0.2 s (time,
+status name, retry_after), ``watch`` (the same and period, duration), ``appear``
+(name, robot), ``truth`` every 0.2 s (time,
 robot position, contacts, cmd_vels received so far, the robot's latest
 /robot/status as ``status``: :func:`drvs.ros.messages.robot_status_to_dict`). Times
 are seconds since the fake started.
@@ -54,6 +62,8 @@ from drvs.srv import (
     CallbackCoordinatesRequest,
     DetectObjectBoundary,
     DetectObjectBoundaryResponse,
+    WatchObjectBoundary,
+    WatchObjectBoundaryResponse,
 )
 from drvs.status import ACCEPTED, INVALID, name
 from drvs.world import box_footprint, load_world
@@ -103,6 +113,7 @@ class FakeDrvs:
         self.started = time.monotonic()
         self.status = None
         self.outbox = queue.Queue()
+        self.watches = {}  # (callback service, request id) -> the watch (a dict)
 
     def record(self, entry):
         with open(self.output, 'a') as handle:
@@ -174,66 +185,153 @@ class FakeDrvs:
         roi = box(*msg_to_box(req.region_of_interest))
         role = req.request_id.rpartition('-')[0]
         captured = rospy.Time.now()
+        if self.refused():
+            self.record_request('request', req, role, 0, self.refuse_status, self.refuse_retry_after)
+            return DetectObjectBoundaryResponse(**self.refusal())
         with self.lock:
-            self.requests += 1
-            refused = self.requests <= self.refuse_first
-        if refused:
-            self.record_request(req, role, 0, self.refuse_status, self.refuse_retry_after)
-            return DetectObjectBoundaryResponse(
-                accepted=self.refuse_status == ACCEPTED,
-                status=self.refuse_status,
-                message=self.refuse_message,
-                retry_after=self.refuse_retry_after,
-            )
-        with self.lock:
-            seen = [
-                fp
-                for colour, fp in self.footprints().values()
-                if all(lo <= c <= hi for lo, c, hi in zip(model.lower, colour, model.upper, strict=True))
-                and fp.intersects(roi)
-            ]
+            seen = self.seen(model, roi)
         reached = [camera for camera, coverage in self.cameras.items() if coverage.intersects(roi)]
-        self.record_request(req, role, len(reached), ACCEPTED, 0.0)
+        self.record_request('request', req, role, len(reached), ACCEPTED, 0.0)
         callbacks = []
         for camera in reached:
-            visible = [fp for fp in seen if self.cameras[camera].contains(ShapelyPoint(fp.centroid))]
-            if not visible:
-                continue  # selectivity: a vision system that found nothing does not call back
-            shift = self.jitter[camera]
-            objects = [
-                points_to_detected_object([(x + shift, y) for x, y in list(fp.exterior.coords)[:-1]])
-                for fp in visible
-            ]
-            callbacks.append(
-                CallbackCoordinatesRequest(
-                    algorithm=req.algorithm,
-                    request_id=req.request_id,
-                    vision_system=camera,
-                    stamp=captured,
-                    objects=objects,
-                )
-            )
+            visible = self.visible(camera, seen)
+            if visible:  # selectivity: a vision system that found nothing does not call back
+                callbacks.append(self.callback(req, camera, captured, visible))
         random.shuffle(callbacks)
+        self.send(req.callback_service, callbacks)
+        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, vision_systems=len(reached))
+
+    def refused(self):
+        """Whether this call is one of the first ``~refuse_first``."""
+        with self.lock:
+            self.requests += 1
+            return self.requests <= self.refuse_first
+
+    def refusal(self):
+        return {
+            'accepted': self.refuse_status == ACCEPTED,
+            'status': self.refuse_status,
+            'message': self.refuse_message,
+            'retry_after': self.refuse_retry_after,
+        }
+
+    def seen(self, model, roi):
+        """Footprints of the colour ``model`` intersecting ``roi`` (the lock held)."""
+        return [
+            fp
+            for colour, fp in self.footprints().values()
+            if all(lo <= c <= hi for lo, c, hi in zip(model.lower, colour, model.upper, strict=True))
+            and fp.intersects(roi)
+        ]
+
+    def visible(self, camera, seen):
+        return [fp for fp in seen if self.cameras[camera].contains(ShapelyPoint(fp.centroid))]
+
+    def callback(self, req, camera, captured, visible):
+        shift = self.jitter[camera]
+        objects = [
+            points_to_detected_object([(x + shift, y) for x, y in list(fp.exterior.coords)[:-1]])
+            for fp in visible
+        ]
+        return CallbackCoordinatesRequest(
+            algorithm=req.algorithm,
+            request_id=req.request_id,
+            vision_system=camera,
+            stamp=captured,
+            objects=objects,
+        )
+
+    def send(self, service, callbacks):
+        """Queue ``callbacks`` for ``service``, ``~latency`` from now (each twice with ``~duplicate``)."""
         if self.duplicate:
             callbacks = callbacks + callbacks
         due = time.monotonic() + self.latency
         for callback in callbacks:
-            self.outbox.put((due, req.callback_service, callback))
-        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, vision_systems=len(reached))
+            self.outbox.put((due, service, callback))
 
-    def record_request(self, req, role, vision_systems, status, retry_after):
-        self.record(
-            {
-                'kind': 'request',
-                'time': time.monotonic() - self.started,
-                'role': role,
-                'request_id': req.request_id,
-                'roi': list(msg_to_box(req.region_of_interest)),
-                'vision_systems': vision_systems,
-                'status': name(status),
-                'retry_after': retry_after,
-            }
+    # -- watches -----------------------------------------------------------------------------
+    def watch(self, req):
+        response = self.answer_watch(req)
+        time.sleep(self.ack_delay)
+        return response
+
+    def answer_watch(self, req):
+        try:
+            model = parse_algorithm(req.algorithm).params
+        except AlgorithmError as error:
+            return WatchObjectBoundaryResponse(accepted=False, status=INVALID, message=str(error))
+        roi = box(*msg_to_box(req.region_of_interest))
+        role = req.request_id.rpartition('/')[2]
+        if self.refused():
+            self.record_request('watch', req, role, 0, self.refuse_status, self.refuse_retry_after)
+            return WatchObjectBoundaryResponse(**self.refusal())
+        key = (req.callback_service, req.request_id)
+        reached = [camera for camera, coverage in self.cameras.items() if coverage.intersects(roi)]
+        period = max(req.period, STEP)
+        with self.lock:
+            if req.duration <= 0:
+                self.watches.pop(key, None)
+            else:
+                watch = self.watches.setdefault(key, {'reported': {}})
+                watch.update(
+                    req=req,
+                    model=model,
+                    roi=roi,
+                    period=period,
+                    changes_only=req.changes_only,
+                    expires=time.monotonic() + req.duration,
+                    next=time.monotonic(),
+                    full=True,
+                )
+        self.record_request('watch', req, role, len(reached), ACCEPTED, 0.0)
+        return WatchObjectBoundaryResponse(
+            accepted=True, status=ACCEPTED, vision_systems=len(reached), period=period, duration=req.duration
         )
+
+    def evaluate(self, _event):
+        """Every watch due: one callback per camera with news (see the module docstring)."""
+        now = time.monotonic()
+        captured = rospy.Time.now()
+        with self.lock:
+            for key, watch in list(self.watches.items()):
+                if now > watch['expires']:
+                    del self.watches[key]
+                    continue
+                if now < watch['next']:
+                    continue
+                watch['next'] = now + watch['period']
+                seen = self.seen(watch['model'], watch['roi'])
+                callbacks = []
+                for camera, coverage in self.cameras.items():
+                    if not coverage.intersects(watch['roi']):
+                        watch['reported'].pop(camera, None)  # withdrawn from this camera
+                        continue
+                    visible = self.visible(camera, seen)
+                    shapes = sorted(
+                        tuple(round(c, 4) for xy in fp.exterior.coords for c in xy) for fp in visible
+                    )
+                    before = watch['reported'].get(camera)
+                    news = shapes != before or watch['full'] or not watch['changes_only']
+                    if (visible and news) or (not visible and before):
+                        callbacks.append(self.callback(watch['req'], camera, captured, visible))
+                    watch['reported'][camera] = shapes if visible else None
+                watch['full'] = False
+                self.send(key[0], callbacks)
+
+    def record_request(self, kind, req, role, vision_systems, status, retry_after):
+        entry = {
+            'kind': kind,
+            'time': time.monotonic() - self.started,
+            'role': role,
+            'request_id': req.request_id,
+            'roi': list(msg_to_box(req.region_of_interest)),
+            'vision_systems': vision_systems,
+            'status': name(status),
+            'retry_after': retry_after,
+        }
+        if kind == 'watch':
+            entry.update(period=req.period, duration=req.duration)
+        self.record(entry)
 
     def deliver(self):
         """Send callbacks when they are due (one worker: answers leave in the order they were made)."""
@@ -268,8 +366,10 @@ def main():
     rospy.Subscriber('/robot/status', RobotStatus, fake.on_status, queue_size=1)
     rospy.Timer(rospy.Duration(STEP), fake.step)
     rospy.Timer(rospy.Duration(0.2), fake.report)
+    rospy.Timer(rospy.Duration(STEP), fake.evaluate)
     threading.Thread(target=fake.deliver, daemon=True).start()
     rospy.Service('~detect_object_boundary', DetectObjectBoundary, fake.detect)
+    rospy.Service('~watch_object_boundary', WatchObjectBoundary, fake.watch)
     rospy.spin()
 
 

@@ -1,11 +1,14 @@
 #!/usr/bin/env python3
 """A fake vision system for tests: registers a field of view, records every forward it receives.
 
-Serves ``~detect_object_boundary`` (drvs/DetectObjectBoundary) and appends one
-JSON line per event to ``~output``:
+Serves ``~detect_object_boundary`` (drvs/DetectObjectBoundary), with ``~watch``
+also ``~watch_object_boundary`` (drvs/WatchObjectBoundary), and appends one JSON
+line per event to ``~output``:
 
 - ``{"kind": "forward", "algorithm", "region_of_interest": [min_x, min_y, max_x, max_y],
   "callback_service", "request_id", "caller"}`` for every request received;
+- ``{"kind": "watch", the same fields, "period", "duration", "changes_only"}`` for
+  every watch forward received (answered ACCEPTED with the period and duration asked);
 - ``{"kind": "register", "field_of_view", "algorithms", "service_name", "accepted",
   "status", "message", "lease", "retry_after"}`` for every registration answer.
 
@@ -23,6 +26,7 @@ Parameters:
 - ``~renew`` (seconds, default 0 = once): re-register this often (lease renewal);
   the parameter is also checked this often (0.2 s when 0).
 - ``~hang`` (seconds, default 0): hold every request this long before answering.
+- ``~watch`` (bool, default false): serve ``~watch_object_boundary`` too, before registering.
 """
 
 import json
@@ -33,7 +37,13 @@ import rospy
 import yaml
 
 from drvs.ros.conversions import points_to_polygon
-from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryResponse, RegisterVisionService
+from drvs.srv import (
+    DetectObjectBoundary,
+    DetectObjectBoundaryResponse,
+    RegisterVisionService,
+    WatchObjectBoundary,
+    WatchObjectBoundaryResponse,
+)
 
 
 def list_param(name):
@@ -55,24 +65,34 @@ def main():
         with lock, open(output, 'a') as handle:
             handle.write(json.dumps(entry) + '\n')
 
-    def handle(request):
+    def fields(kind, request):
         box = request.region_of_interest
-        record(
-            {
-                'kind': 'forward',
-                'algorithm': request.algorithm,
-                'region_of_interest': [box.min_x, box.min_y, box.max_x, box.max_y],
-                'callback_service': request.callback_service,
-                'request_id': request.request_id,
-                'caller': request._connection_header.get('callerid', ''),
-            }
-        )
+        return {
+            'kind': kind,
+            'algorithm': request.algorithm,
+            'region_of_interest': [box.min_x, box.min_y, box.max_x, box.max_y],
+            'callback_service': request.callback_service,
+            'request_id': request.request_id,
+            'caller': request._connection_header.get('callerid', ''),
+        }
+
+    def handle(request):
+        record(fields('forward', request))
         if hang > 0:
             time.sleep(hang)
         return DetectObjectBoundaryResponse(accepted=True, message='fake', vision_systems=1)
 
+    def handle_watch(request):
+        terms = {'period': request.period, 'duration': request.duration, 'changes_only': request.changes_only}
+        record({**fields('watch', request), **terms})
+        return WatchObjectBoundaryResponse(
+            accepted=True, message='fake', vision_systems=1, period=request.period, duration=request.duration
+        )
+
     own = rospy.resolve_name('~detect_object_boundary')
     rospy.Service(own, DetectObjectBoundary, handle)
+    if rospy.get_param('~watch', False):
+        rospy.Service(rospy.resolve_name('~watch_object_boundary'), WatchObjectBoundary, handle_watch)
     if not rospy.get_param('~register', True):
         rospy.spin()
         return
