@@ -1,14 +1,26 @@
-"""A scenario run's picture and summary, from what was recorded while it ran.
+"""A scenario run's picture, summary and figures, from what was recorded while it ran.
 
-:class:`RunRecord` holds the recording (plans, driven trajectory, re-plans,
-fields of view, the robot's map, per-camera traffic, CPU use). :func:`summary`
-turns it into the ``summary.json`` dictionary and :func:`picture` into the
-picture (a matplotlib Figure, which :func:`draw` writes as a PNG), in the style
-of the paper's Figures 7, 8, 10 and 11; :func:`write_report` writes both and
-``trace.json`` (the live recorder and ``drvs_report`` share it).
-:func:`hindsight_shortest_length` is the shortest collision-free route among
-the world's static obstacles, computed on a visibility graph (exact for
-polygonal obstacles, unlike a grid).
+:class:`RunRecord` holds the recording: one :class:`RobotRecord` per robot of the
+world (plans, driven trajectory, re-plans, its traffic counters) and what the run
+shares (fields of view, the robots' maps, the server's and each camera's
+counters, CPU use, wall-clock time). :func:`summary` turns it into the
+``summary.json`` dictionary, :func:`figures_table` that into the table
+``run_scenario.sh`` prints at the end, and :func:`picture` into the picture (a
+matplotlib Figure, which :func:`draw` writes as a PNG) in the style of the paper's
+Figures 7, 8, 10 and 11, every robot in its own colour; :func:`write_report` writes
+the summary, ``trace.json`` and the picture (the live recorder and ``drvs_report``
+share it).
+
+The summary has a row per robot in ``robots`` and the run's totals at the top
+(``reached`` when every robot did, ``elapsed`` until the last arrival, ``replans``
+and ``collisions`` summed). With a single robot (the paper's worlds) the rest of
+its row is at the top level too, as before fleets: ``state``, ``reason``,
+``driven_length``, ``best_length``; ``trace.json`` likewise.
+
+:func:`hindsight_shortest_length` is the shortest collision-free route among the
+world's static obstacles, an A* search on a visibility graph (exact for polygonal
+obstacles, unlike a grid): about 0.1 s for a route across a 20 × 12 m floor of 28
+shelves.
 """
 
 from __future__ import annotations
@@ -16,137 +28,315 @@ from __future__ import annotations
 import heapq
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from shapely.geometry import LineString, Point, Polygon, box
 from shapely.ops import unary_union
+from shapely.prepared import prep
 
-from drvs.world import World
+from drvs.world import Body, World
+
+ROBOT_FIGURES = ('requests', 'watch_calls', 'callbacks', 'callback_bytes')
+"""The counters of drvs/RobotStatus a robot's row of the summary carries."""
+CAMERA_FIGURES = (
+    'requests',
+    'watch_calls',
+    'renders',
+    'callbacks',
+    'callback_bytes',
+    'watch_evaluations',
+    'cache_hits',
+)
+"""The counters of drvs/VisionSystemStats a camera's entry of the summary carries."""
+SERVER_FIGURES = (
+    'requests',
+    'watch_requests',
+    'refused',
+    'forwards',
+    'watch_forwards',
+    'fallback_forwards',
+    'forward_failures',
+)
+"""The counters of drvs/ServerStats the summary's ``server`` carries."""
 
 
 @dataclass
-class RunRecord:
-    """Everything a scenario run leaves behind for its picture and summary."""
+class RobotRecord:
+    """One robot's part of the run."""
 
-    world: World
+    name: str
     reached: bool = False
-    elapsed: float = 0.0
+    elapsed: float = 0.0  # seconds (ROS time) from the run's first status to this robot's arrival or failure
     state: str = 'starting'
     reason: str = ''
     replans: int = 0
     collisions: int = 0
+    travelled: float = 0.0  # metres its body moved (world_sim's odometer): the driven length
+    requests: int = 0
+    watch_calls: int = 0
+    callbacks: int = 0
+    callback_bytes: int = 0
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)  # (t, x, y), ground truth
-    humans: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # name -> [(x, y)]
     plans: list[tuple[float, list[tuple[float, float]]]] = field(default_factory=list)  # (t, path)
     replan_points: list[tuple[float, float]] = field(default_factory=list)
-    fields_of_view: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
-    grid: np.ndarray | None = None  # every cell the robot mapped (rows = y), 0-100 or -1, over the run
-    grid_origin: tuple[float, float] = (0.0, 0.0)
-    grid_resolution: float = 0.05
-    vision_systems: dict[str, dict] = field(default_factory=dict)  # name -> stats
-    cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
     tag_poses: list[tuple[float, float, float]] = field(default_factory=list)  # (x, y, heading) seen
 
 
-def path_length(points) -> float:
-    points = [(p[-2], p[-1]) for p in points]
-    return float(sum(math.dist(a, b) for a, b in zip(points, points[1:], strict=False)))
+@dataclass
+class RunRecord:
+    """Everything a scenario run leaves behind for its picture and summary.
+
+    ``robots`` holds a :class:`RobotRecord` for every robot of the world, in its order (an
+    empty one for each not given).
+    """
+
+    world: World
+    robots: dict[str, RobotRecord] = field(default_factory=dict)
+    humans: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # name -> [(x, y)]
+    fields_of_view: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    grid: np.ndarray | None = None  # every cell a robot mapped (rows = y), 0-100 or -1, over the run
+    grid_origin: tuple[float, float] = (0.0, 0.0)
+    grid_resolution: float = 0.05
+    vision_systems: dict[str, dict] = field(default_factory=dict)  # name -> counters
+    server: dict[str, int] = field(default_factory=dict)  # SERVER_FIGURES
+    cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
+    wall_seconds: float = 0.0  # wall-clock seconds from the run's first status to its last counted one
+
+    def __post_init__(self):
+        self.robots = {r.name: self.robots.get(r.name) or RobotRecord(r.name) for r in self.world.robots}
+
+
+def clearance(body: Body) -> float:
+    """The radius a robot's body keeps from obstacles: half its diagonal."""
+    return math.hypot(*body.size[:2]) / 2.0
 
 
 def hindsight_shortest_length(world: World, radius: float, start=None, goal=None) -> float:
-    """Length of the shortest route from the robot's start to the station among static obstacles.
+    """Length of the shortest route from ``start`` to ``goal`` among static obstacles.
 
-    Obstacles are the static objects' footprints grown by ``radius`` (the robot's
-    clearance); the route must stay ``radius`` inside the floor. Humans move, so
-    they are not obstacles in hindsight. Returns ``inf`` when no route exists.
+    By default from the (first) robot's start to its station. Obstacles are the static
+    objects' footprints grown by ``radius`` (the robot's clearance); the route must stay
+    ``radius`` inside the floor. Humans move, so they are not obstacles in hindsight.
+    Returns ``inf`` when no route exists.
     """
     start = Point(start or world.robot.position)
     goal = Point(goal or world.station.position)
     floor = box(0.0, 0.0, *world.floor_size).buffer(-radius, join_style=2)
     grown = [Polygon(o.footprint()).buffer(radius, join_style=2) for o in world.objects if o.kind == 'static']
     blocked = unary_union(grown) if grown else Polygon()
-    free = floor.difference(blocked).buffer(1e-6)  # a route may run along an obstacle's edge
+    free = prep(floor.difference(blocked).buffer(1e-6))  # a route may run along an obstacle's edge
     nodes = [start, goal]
     if not blocked.is_empty:
         corners = blocked.buffer(1e-3, join_style=2)
         parts = corners.geoms if hasattr(corners, 'geoms') else [corners]
         nodes += [Point(c) for part in parts for c in part.exterior.coords[:-1] if free.contains(Point(c))]
 
-    def visible(a: Point, b: Point) -> bool:
-        return free.contains(LineString([a, b]))
-
+    # A*: the straight distance to the goal never overestimates the rest of the route.
     distance = {0: 0.0}
-    queue = [(0.0, 0)]
+    queue = [(start.distance(goal), 0.0, 0)]
     goal_index = 1
     done = set()
     while queue:
-        d, i = heapq.heappop(queue)
+        _, d, i = heapq.heappop(queue)
         if i in done:
             continue
         if i == goal_index:
             return d
         done.add(i)
         for j, other in enumerate(nodes):
-            if j in done or j == i:
+            if j in done:
                 continue
             nd = d + nodes[i].distance(other)
-            if nd < distance.get(j, math.inf) and visible(nodes[i], other):
+            if nd < distance.get(j, math.inf) and free.contains(LineString([nodes[i], other])):
                 distance[j] = nd
-                heapq.heappush(queue, (nd, j))
+                heapq.heappush(queue, (nd + other.distance(goal), nd, j))
     return math.inf
 
 
-def summary(record: RunRecord, best_length: float) -> dict:
-    """The ``summary.json`` content: outcome, lengths, re-plans, collisions, traffic and CPU."""
+def best_lengths(world: World) -> dict[str, float]:
+    """Each robot's hindsight shortest route to its station, for its own clearance."""
     return {
+        robot.name: hindsight_shortest_length(
+            world, clearance(robot.body), robot.body.position, robot.station.position
+        )
+        for robot in world.robots
+    }
+
+
+def _rounded(value: float, digits: int) -> float | None:
+    return round(value, digits) if math.isfinite(value) else None
+
+
+def robot_row(robot: RobotRecord, best_length: float) -> dict:
+    """A robot's row of the summary: outcome, lengths and its figures."""
+    return {
+        'name': robot.name,
+        'reached': bool(robot.reached),
+        'state': robot.state,
+        'reason': robot.reason,
+        'collisions': robot.collisions,
+        'elapsed': round(robot.elapsed, 2),
+        'arrival': round(robot.elapsed, 2) if robot.reached else None,
+        'driven_length': round(robot.travelled, 3),
+        'best_length': _rounded(best_length, 3),
+        'replans': robot.replans,
+        **{key: getattr(robot, key) for key in ROBOT_FIGURES},
+    }
+
+
+SINGLE_ROBOT_KEYS = ('state', 'reason', 'driven_length', 'best_length')
+"""A lone robot's row keys repeated at the top level of the summary (its other keys are totals)."""
+
+
+def summary(record: RunRecord, best_length: Mapping[str, float]) -> dict:
+    """The ``summary.json`` content: outcome, a row per robot, the totals, traffic, time and CPU.
+
+    ``best_length``: each robot's hindsight route length, by name (:func:`best_lengths`).
+    """
+    rows = [robot_row(robot, best_length.get(name, math.inf)) for name, robot in record.robots.items()]
+    result = {
         'world': str(record.world.path),
-        'reached': bool(record.reached),
-        'state': record.state,
-        'reason': record.reason,
-        'elapsed': round(record.elapsed, 2),
-        'driven_length': round(path_length(record.trajectory), 3),
-        'best_length': round(best_length, 3) if math.isfinite(best_length) else None,
-        'replans': record.replans,
-        'collisions': record.collisions,
+        'reached': all(row['reached'] for row in rows),
+        'elapsed': max((row['elapsed'] for row in rows), default=0.0),
+        'replans': sum(row['replans'] for row in rows),
+        'collisions': sum(row['collisions'] for row in rows),
+        'real_time_factor': record.world.real_time_factor,
+        'wall_seconds': round(record.wall_seconds, 2),
+        'robots': rows,
+        'server': {key: record.server.get(key, 0) for key in SERVER_FIGURES},
         'vision_systems': dict(sorted(record.vision_systems.items())),
         'cpu': dict(sorted(record.cpu.items())),
     }
+    if len(rows) == 1:
+        result |= {key: rows[0][key] for key in SINGLE_ROBOT_KEYS}
+    return result
 
 
 def trace(record: RunRecord) -> dict:
     """The ``trace.json`` content: the run's geometry over time, for tests and later plots."""
-    return {
-        'trajectory': record.trajectory,
-        'plans': [plan for _, plan in record.plans],
-        'replan_points': record.replan_points,
-        'humans': record.humans,
-        'fields_of_view': record.fields_of_view,
-        'tag_poses': record.tag_poses,
+    robots = {
+        name: {
+            'trajectory': robot.trajectory,
+            'plans': [plan for _, plan in robot.plans],
+            'replan_points': robot.replan_points,
+            'tag_poses': robot.tag_poses,
+        }
+        for name, robot in record.robots.items()
     }
+    result = {'robots': robots, 'humans': record.humans, 'fields_of_view': record.fields_of_view}
+    if len(robots) == 1:
+        result |= next(iter(robots.values()))
+    return result
 
 
 def write_report(record: RunRecord, out: str | Path) -> dict:
-    """Write ``summary.json``, ``trace.json`` and ``run.png`` into ``out``; return the summary.
-
-    The best length is the hindsight route for the robot's clearance (half its diagonal).
-    """
+    """Write ``summary.json``, ``trace.json`` and ``run.png`` into ``out``; return the summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    radius = math.hypot(*record.world.robot.size[:2]) / 2.0
-    result = summary(record, hindsight_shortest_length(record.world, radius))
+    result = summary(record, best_lengths(record.world))
     (out / 'summary.json').write_text(json.dumps(result, indent=2) + '\n')
     (out / 'trace.json').write_text(json.dumps(trace(record)) + '\n')
     draw(record, out / 'run.png')
     return result
 
 
-# Colours of the picture: the driven trajectory alone in red; cameras and humans from
-# palettes without it (the plans are blue to green, the robot's map orange).
-TRAJECTORY_COLOUR = 'red'
+# -- the figures ----------------------------------------------------------------------------------
+def _cell(value) -> str:
+    if value is None:
+        return '-'
+    if isinstance(value, bool):
+        return 'yes' if value else 'no'
+    if isinstance(value, float):
+        return f'{value:.1f}'
+    return str(value)
+
+
+def _table(headers: tuple[str, ...], rows: list[tuple]) -> list[str]:
+    """Columns aligned: the first to the left, the others to the right."""
+    cells = [headers, *[tuple(_cell(v) for v in row) for row in rows]]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+    return [
+        '  '.join(
+            c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True))
+        )
+        for row in cells
+    ]
+
+
+ROBOT_COLUMNS = (
+    ('robot', 'name'),
+    ('reached', 'reached'),
+    ('arrival s', 'arrival'),
+    ('requests', 'requests'),
+    ('watch calls', 'watch_calls'),
+    ('callbacks', 'callbacks'),
+    ('callback bytes', 'callback_bytes'),
+    ('re-plans', 'replans'),
+)
+"""The robots' table of :func:`figures_table`: (header, key of the summary's row)."""
+CAMERA_COLUMNS = (
+    ('requests', 'requests'),
+    ('watch calls', 'watch_calls'),
+    ('renders', 'renders'),
+    ('callbacks', 'callbacks'),
+    ('watch evaluations', 'watch_evaluations'),
+)
+"""The cameras' table of :func:`figures_table` after the name: (header, key of its counters)."""
+
+
+def figures_table(summary: dict) -> str:
+    """The run's figures as text: a row per robot, the server's totals, a row per camera, time.
+
+    >>> print(figures_table({'robots': [], 'server': {'requests': 3}, 'vision_systems': {}, 'cpu': {},
+    ...                      'elapsed': 2.0, 'wall_seconds': 2.5, 'real_time_factor': 1.0}))
+    robot  reached  arrival s  requests  watch calls  callbacks  callback bytes  re-plans  cpu s
+    server: requests 3
+    camera  requests  watch calls  renders  callbacks  watch evaluations  cpu s
+    time: 2.0 s elapsed in ROS time (real-time factor 1.0), 2.5 s on the wall clock
+    """
+
+    def cpu(node: str) -> float | None:
+        return summary['cpu'].get(f'/{node}', {}).get('seconds')
+
+    robots = [(*(row[key] for _, key in ROBOT_COLUMNS), cpu(row['name'])) for row in summary['robots']]
+    lines = _table((*(header for header, _ in ROBOT_COLUMNS), 'cpu s'), robots)
+    server = ', '.join(f'{key.replace("_", " ")} {n}' for key, n in summary['server'].items())
+    lines.append(f'server: {server}')
+    cameras = [
+        (name, *(stats.get(key, 0) for _, key in CAMERA_COLUMNS), cpu(name))
+        for name, stats in summary['vision_systems'].items()
+    ]
+    lines += _table(('camera', *(header for header, _ in CAMERA_COLUMNS), 'cpu s'), cameras)
+    lines.append(
+        f'time: {summary["elapsed"]:.1f} s elapsed in ROS time (real-time factor '
+        f'{summary["real_time_factor"]}), {summary["wall_seconds"]:.1f} s on the wall clock'
+    )
+    return '\n'.join(lines)
+
+
+# Colours of the picture: each robot's trajectory and station edge in its own colour (the
+# first robot's red, as in the paper's worlds); cameras and humans from palettes without
+# them (the plans are blue to green, the robots' map orange).
+ROBOT_COLOURS = (
+    'red',
+    'darkviolet',
+    'limegreen',
+    'deeppink',
+    'darkorange',
+    'dodgerblue',
+    'black',
+    'sienna',
+    'turquoise',
+    'olivedrab',
+)
+TRAJECTORY_COLOUR = ROBOT_COLOURS[0]
 CAMERA_COLOURS = ('tab:blue', 'tab:cyan', 'tab:olive', 'tab:gray', 'navy', 'teal', 'goldenrod', 'slategray')
 HUMAN_COLOURS = ('tab:brown', 'tab:pink', 'darkmagenta')
+CAMERA_LEGEND_LIMIT = len(CAMERA_COLOURS)
+"""More cameras than this share one legend entry (their names are on the floor)."""
 
 
 def camera_name(service: str) -> str:
@@ -166,10 +356,12 @@ def draw(record: RunRecord, path: str | Path) -> None:
 def picture(record: RunRecord):
     """The run's picture as a matplotlib Figure (no pyplot, nothing global), its legend beside it.
 
-    Floor, the robot's map, every camera (position and dashed field of view, one legend
-    entry each, by name; a camera of the world that never registered is marked so),
-    obstacles, each human's walk and last position, the station, the plans, the driven
-    trajectory with its start and the robot's final position, tag poses and re-plans.
+    Floor, the robots' map, every camera (position and dashed field of view, one legend
+    entry each, by name, up to :data:`CAMERA_LEGEND_LIMIT` cameras; a camera of the world that
+    never registered is marked so), obstacles, each human's walk and last position, and per
+    robot in its colour (:data:`ROBOT_COLOURS`): its station, plans, driven trajectory with its
+    start and final position, tag poses and re-plans. A legend entry that the robots share
+    is there once; with several robots each trajectory's entry names its robot.
     """
     import matplotlib
     from matplotlib.colors import ListedColormap
@@ -191,7 +383,7 @@ def picture(record: RunRecord):
             record.grid_origin[1],
             record.grid_origin[1] + rows * record.grid_resolution,
         )
-        # Cells the robot ever mapped: 100 = an obstacle outline, 99 = its inflated margin.
+        # Cells a robot ever mapped: 100 = an obstacle outline, 99 = its inflated margin.
         layers = np.ma.masked_less(record.grid.astype(float), 99)
         axes.imshow(
             layers,
@@ -210,10 +402,13 @@ def picture(record: RunRecord):
 
     cameras = {camera.name: camera for camera in world.vision_systems}
     views = {camera_name(service): fov for service, fov in record.fields_of_view.items()}
-    for i, name in enumerate(sorted(set(cameras) | set(views))):
+    names = sorted(set(cameras) | set(views))
+    each = len(names) <= CAMERA_LEGEND_LIMIT
+    for i, name in enumerate(names):
         colour = CAMERA_COLOURS[i % len(CAMERA_COLOURS)]
         fov = views.get(name)
         if fov:
+            label = f'{name} field of view' if each else ('fields of view' if i == 0 else None)
             axes.add_patch(
                 Patch(
                     fov,
@@ -223,7 +418,7 @@ def picture(record: RunRecord):
                     linewidth=1.3,
                     edgecolor=colour,
                     zorder=2,
-                    label=f'{name} field of view',
+                    label=label,
                 )
             )
         if name in cameras:
@@ -277,73 +472,95 @@ def picture(record: RunRecord):
                 zorder=3,
                 label=f'human {name}: walk and last position',
             )
-    axes.add_patch(
-        Patch(
-            world.station.footprint(),
-            closed=True,
-            facecolor=rgb(world.station.colour),
-            edgecolor='black',
-            zorder=3,
-            label='charging station',
-        )
-    )
+
+    fleet = len(world.robots) > 1
+    shown: set[str] = set()
+
+    def once(text: str) -> str | None:
+        """A legend entry that every robot shares: for the first that draws it."""
+        if text in shown:
+            return None
+        shown.add(text)
+        return text
 
     plan_colours = matplotlib.colormaps['winter']
-    for i, (_, plan) in enumerate(record.plans):
-        if len(plan) >= 2:
-            xs, ys = zip(*plan, strict=True)
-            colour = plan_colours(i / max(1, len(record.plans) - 1)) if i else 'blue'
+    for i, fleet_robot in enumerate(world.robots):
+        robot = record.robots[fleet_robot.name]
+        colour = ROBOT_COLOURS[i % len(ROBOT_COLOURS)]
+        axes.add_patch(
+            Patch(
+                fleet_robot.station.footprint(),
+                closed=True,
+                facecolor=rgb(fleet_robot.station.colour),
+                edgecolor=colour if fleet else 'black',
+                linewidth=2.5 if fleet else 1.0,
+                zorder=3,
+                label=once(
+                    "charging stations, edged in their robot's colour" if fleet else 'charging station'
+                ),
+            )
+        )
+        for j, (_, plan) in enumerate(robot.plans):
+            if len(plan) >= 2:
+                xs, ys = zip(*plan, strict=True)
+                plan_colour = plan_colours(j / max(1, len(robot.plans) - 1)) if j else 'blue'
+                axes.plot(
+                    xs,
+                    ys,
+                    '-',
+                    color=plan_colour,
+                    linewidth=1.5,
+                    alpha=0.8,
+                    zorder=4,
+                    label=once('first plan') if j == 0 else (once('re-plans') if j == 1 else None),
+                )
+        if robot.trajectory:
+            _, xs, ys = zip(*robot.trajectory, strict=True)
+            label = f'{robot.name}: driven trajectory' if fleet else 'driven trajectory'
+            axes.plot(xs, ys, '-', color=colour, linewidth=2.5, zorder=5, label=label)
             axes.plot(
+                xs[0],
+                ys[0],
+                'o',
+                color='green',
+                markeredgecolor='black',
+                markersize=10,
+                zorder=6,
+                label=once('start'),
+            )
+            axes.plot(
+                xs[-1],
+                ys[-1],
+                '*',
+                color=colour,
+                markeredgecolor='black',
+                markersize=17,
+                zorder=7,
+                label=once('robot at the end'),
+            )
+        if robot.tag_poses:
+            # The robot's poses as DRVS saw its tag: position and heading, not predicted.
+            xs, ys, headings = (np.asarray(v) for v in zip(*robot.tag_poses, strict=True))
+            axes.quiver(
                 xs,
                 ys,
-                '-',
-                color=colour,
-                linewidth=1.5,
-                alpha=0.8,
-                zorder=4,
-                label='first plan' if i == 0 else ('re-plans' if i == 1 else None),
+                np.cos(headings),
+                np.sin(headings),
+                angles='xy',
+                scale_units='xy',
+                scale=1 / 0.25,
+                width=0.004,
+                color='purple',
+                zorder=6,
+                label=once('tag pose seen (heading)'),
             )
-    if record.trajectory:
-        _, xs, ys = zip(*record.trajectory, strict=True)
-        axes.plot(xs, ys, '-', color=TRAJECTORY_COLOUR, linewidth=2.5, zorder=5, label='driven trajectory')
-        axes.plot(
-            xs[0], ys[0], 'o', color='green', markeredgecolor='black', markersize=10, zorder=6, label='start'
-        )
-        axes.plot(
-            xs[-1],
-            ys[-1],
-            '*',
-            color=TRAJECTORY_COLOUR,
-            markeredgecolor='black',
-            markersize=17,
-            zorder=7,
-            label='robot at the end',
-        )
-    if record.tag_poses:
-        # The robot's poses as DRVS saw its tag: position and heading, not predicted.
-        xs, ys, headings = (np.asarray(v) for v in zip(*record.tag_poses, strict=True))
-        axes.quiver(
-            xs,
-            ys,
-            np.cos(headings),
-            np.sin(headings),
-            angles='xy',
-            scale_units='xy',
-            scale=1 / 0.25,
-            width=0.004,
-            color='purple',
-            zorder=6,
-            label='tag pose seen (heading)',
-        )
-    if record.replan_points:
-        xs, ys = zip(*record.replan_points, strict=True)
-        axes.plot(xs, ys, 'x', color='black', markersize=10, markeredgewidth=2, zorder=7, label='re-plan')
+        if robot.replan_points:
+            xs, ys = zip(*robot.replan_points, strict=True)
+            axes.plot(
+                xs, ys, 'x', color='black', markersize=10, markeredgewidth=2, zorder=7, label=once('re-plan')
+            )
 
-    outcome = 'reached the station' if record.reached else f'did not reach the station ({record.state})'
-    axes.set_title(
-        f'{world.path.stem}: {outcome} in {record.elapsed:.1f} s, {record.replans} re-plan(s), '
-        f'{record.collisions} collision(s)'
-    )
+    axes.set_title(_title(record))
     axes.set_xlim(-0.2, width + 0.2)
     axes.set_ylim(-0.2, height + 0.2)
     axes.set_aspect('equal')
@@ -352,3 +569,18 @@ def picture(record: RunRecord):
     axes.grid(True, linewidth=0.3)
     axes.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8, framealpha=0.8)
     return figure
+
+
+def _title(record: RunRecord) -> str:
+    robots = list(record.robots.values())
+    replans = sum(r.replans for r in robots)
+    collisions = sum(r.collisions for r in robots)
+    totals = f'{replans} re-plan(s), {collisions} collision(s)'
+    if len(robots) == 1:
+        (robot,) = robots
+        outcome = 'reached the station' if robot.reached else f'did not reach the station ({robot.state})'
+        return f'{record.world.path.stem}: {outcome} in {robot.elapsed:.1f} s, {totals}'
+    reached = sum(r.reached for r in robots)
+    elapsed = max(r.elapsed for r in robots)
+    outcome = f'{reached} of {len(robots)} robots reached their stations'
+    return f'{record.world.path.stem}: {outcome} in {elapsed:.1f} s, {totals}'

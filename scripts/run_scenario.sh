@@ -2,56 +2,80 @@
 # Run one DRVS scenario end to end, without roslaunch.
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
-#                                 [--camera-source render|topic] [--rviz] [--record]
+#                                 [--camera-source render|topic] [--requests poll|watch] [--rviz]
+#                                 [--record] [--hosts] [--robot-link RATE]
 #   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
-# the environment's ROS_MASTER_URI), then drvs_server, world_sim, one
-# vision_system per camera of WORLD, the scenario recorder and blind_robot, each
-# a plain background process with its log in DIR (default out/<world name>).
-# Waits until the robot reaches the station, fails, or the timeout (default 120 s)
-# passes, showing its progress (state, distance to goal, re-plans, elapsed time:
-# one updating line on a terminal, a plain line every 5 s and on each change of
-# state otherwise); then stops everything it started (also on Ctrl-C) and leaves
-# DIR/summary.json and DIR/run.png. Exits 0 only if the robot reached the station.
+# the environment's ROS_MASTER_URI), then world_sim, drvs_server, one
+# vision_system per camera of WORLD, the scenario recorder and one blind_robot per
+# robot of WORLD (__name:= the robot's name), each a plain background process with
+# its log in DIR (default out/<world name>). Waits until every robot reached its
+# station or failed, or the timeout passes (wall seconds; default 120 s divided by
+# the world's real_time_factor), showing its progress (state, distance to goal,
+# re-plans, elapsed time; with several robots how many are in each state: one
+# updating line on a terminal, a plain line every 5 s and on each change of state
+# otherwise); then stops everything it started (also on Ctrl-C), leaves
+# DIR/summary.json and DIR/run.png and prints the run's figures (a row per robot
+# and per camera, the server's totals). Exits 0 only if every robot reached its
+# station, and names those that did not otherwise.
+# A world with real_time_factor below 1 runs on ROS simulated time: /use_sim_time
+# is set true on the master before any node starts (false for any other world),
+# and world_sim, which publishes /clock, starts first.
 # Every process it starts is listed in DIR/pids (PID PGID START NAME) while it
 # runs, so that scripts/stop_scenario.sh DIR stops them if this script is killed;
 # a second run into the same DIR is refused while one is there.
-# With --stay, DRVS (server, world_sim, vision systems) keeps running after the
-# robot is done, until Ctrl-C, so it can be explored by hand (see the README).
+# With --stay, DRVS (server, world_sim, vision systems) and the robots keep running
+# after the robots are done, until Ctrl-C, so it can be explored by hand (see the README).
 # With --camera-source topic, the simulation drives the vision systems like real
 # cameras: one sim_camera per camera publishes its rendered colour and depth
 # images, CameraInfo and tf, and each vision_system runs with _source:=topic on
 # them (default: render, each vision system renders its own view on demand).
+# With --requests poll or watch, every robot runs with _requests:= that (default:
+# the robot's own default, standing requests).
 # With --rviz, RViz opens on the run with rviz/drvs.rviz (needs a display and
 # Debian's rviz: make rviz-setup installs it).
 # With --record, `rosbag record` writes the run to DIR/run.bag: started before
 # the other nodes and stopped after them, it holds every DRVS topic (latched ones
 # and tf too, so `rosbag play` drives RViz again) and the recorder's samples, from
 # which `nodes/drvs_report DIR/run.bag` writes the same summary.json again.
+# With --hosts (root only; scripts/hosts.sh), each part runs on a network host of
+# its own, a Linux network namespace on a private bridge: the master and
+# drvs_server on host master, world_sim and the recorder (and the bag recorder)
+# on host sim, the vision systems in groups of CAMERAS_PER_HOST on hosts cameras1,
+# cameras2, ..., each robot on a host named as it. Every namespace and link is
+# removed on exit, also on Ctrl-C or failure (and by scripts/stop_scenario.sh DIR
+# after a kill -9). --robot-link RATE (e.g. 2mbit) limits the first robot's host
+# link to RATE both ways (tc tbf), as a robot on a slow wireless link.
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--rviz] [--record]"
+CAMERAS_PER_HOST=8
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--rviz] [--record] [--hosts] [--robot-link RATE]"
 help() {
   cat <<EOF
 $synopsis
-Run one DRVS scenario: a ROS master, drvs_server, world_sim, one vision_system per camera
-of WORLD, the scenario recorder and blind_robot; stop them all at the end.
+Run one DRVS scenario: a ROS master, world_sim, drvs_server, one vision_system per camera
+of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop them all at the end.
   WORLD                  the world file, e.g. worlds/localisation.yaml
-  --timeout S            give up after S seconds (default 120)
+  --timeout S            give up after S wall-clock seconds (default 120 divided by the world's real_time_factor)
   --out DIR              logs, summary.json, trace.json, run.png and pids there (default out/<world name>)
   --external-master      use the master at \$ROS_MASTER_URI (default http://127.0.0.1:11311), not a private one
-  --stay                 keep DRVS and the robot running after the robot is done, until Ctrl-C
+  --stay                 keep DRVS and the robots running after the robots are done, until Ctrl-C
   --camera-source SOURCE render: each vision system renders its own view (default); topic: a sim_camera
                          per camera publishes images, CameraInfo and tf, which its vision system reads
+  --requests MODE        every robot asks DRVS by poll (one-shot requests) or watch (standing requests);
+                         default: the robot's own default (watch)
   --rviz                 open RViz on the run with rviz/drvs.rviz (needs a display)
   --record               record the run's topics into DIR/run.bag (drvs_report DIR/run.bag replays it)
+  --hosts                every part on a network host of its own (Linux network namespaces; needs root)
+  --robot-link RATE      with --hosts: limit the first robot's link to RATE both ways, e.g. 2mbit
   -h, --help             print this help and exit
 Stop it with Ctrl-C; if this script was killed, $stop_script DIR stops what it started.
-Exit code: 0 the robot reached the station; 1 it failed, timed out or a node crashed;
-2 a usage error, no master at \$ROS_MASTER_URI, or DIR in use by another run; 130 interrupted.
+Exit code: 0 every robot reached its station; 1 a robot failed, the run timed out or a node
+crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
+network hosts possible with --hosts; 130 interrupted.
 EOF
 }
 usage() {  # a usage error: the synopsis on stderr, exit 2
@@ -59,8 +83,12 @@ usage() {  # a usage error: the synopsis on stderr, exit 2
   echo "($0 --help describes the options)" >&2
   exit 2
 }
+fail() {  # fail MESSAGE: one line on stderr, exit 2 (before anything started)
+  echo "run_scenario: $1" >&2
+  exit 2
+}
 
-world="" timeout=120 out="" external=0 stay=0 source=render rviz=0 record=0
+world="" timeout="" out="" external=0 stay=0 source=render requests="" rviz=0 record=0 hosts=0 link=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
@@ -70,27 +98,49 @@ while [ $# -gt 0 ]; do
     --rviz) rviz=1; shift ;;
     --record) record=1; shift ;;
     --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
+    --requests) [ $# -ge 2 ] || usage; requests=$2; shift 2 ;;
+    --hosts) hosts=1; shift ;;
+    --robot-link) [ $# -ge 2 ] || usage; link=$2; shift 2 ;;
     -h|--help) help; exit 0 ;;
     -*) echo "run_scenario: unknown option $1" >&2; usage ;;
     *) [ -z "$world" ] || usage; world=$1; shift ;;
   esac
 done
 [ -n "$world" ] || usage
-[ -f "$world" ] || { echo "run_scenario: world file $world not found" >&2; exit 2; }
-[[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "run_scenario: --timeout needs seconds, got $timeout" >&2; exit 2; }
-[[ "$source" =~ ^(render|topic)$ ]] || { echo "run_scenario: --camera-source is render or topic, got $source" >&2; exit 2; }
-[ -x "$root/.venv/bin/python" ] || { echo "run_scenario: no .venv: run scripts/setup.sh (or make demo) first" >&2; exit 2; }
+[ -f "$world" ] || fail "world file $world not found"
+[ -z "$timeout" ] || [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || fail "--timeout needs seconds, got $timeout"
+[[ "$source" =~ ^(render|topic)$ ]] || fail "--camera-source is render or topic, got $source"
+[[ "$requests" =~ ^(|poll|watch)$ ]] || fail "--requests is poll or watch, got $requests"
+[ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
+[ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
+[ -x "$root/.venv/bin/python" ] || fail "no .venv: run scripts/setup.sh (or make demo) first"
 # Every problem of the world file at once, before anything starts (nodes/drvs_check_world).
 checked=$("$root/.venv/bin/python" "$root/nodes/drvs_check_world" "$world" 2>&1) || { echo "$checked" >&2; exit 2; }
 if [ $rviz -eq 1 ]; then
-  command -v rviz >/dev/null || bash "$root/scripts/setup.sh" --rviz || { echo "run_scenario: --rviz: installing rviz failed" >&2; exit 2; }
-  [ -n "${DISPLAY:-}" ] || { echo "run_scenario: --rviz needs a display, and DISPLAY is not set" >&2; exit 2; }
+  command -v rviz >/dev/null || bash "$root/scripts/setup.sh" --rviz || fail "--rviz: installing rviz failed"
+  [ -n "${DISPLAY:-}" ] || fail "--rviz needs a display, and DISPLAY is not set"
+fi
+if [ $hosts -eq 1 ]; then
+  # shellcheck source=scripts/hosts.sh
+  source "$root/scripts/hosts.sh"
+  reason=$(hosts_check) || fail "--hosts: cannot make network hosts here: $reason"
 fi
 
 world=$(cd "$(dirname "$world")" && pwd)/$(basename "$world")
 out=${out:-$root/out/$(basename "$world" .yaml)}
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
+
+# The world's cameras, robots, whether it runs on simulated time, and the default timeout.
+facts=$("$root/.venv/bin/python" -c 'import math, sys
+from drvs.world import load_world
+world = load_world(sys.argv[1])
+print(" ".join(c.name for c in world.vision_systems))
+print(" ".join(r.name for r in world.robots))
+print(int(world.real_time_factor < 1))
+print(math.ceil(120 / world.real_time_factor))' "$world")
+{ read -r cameras; read -r robots; read -r sim_time; read -r default_timeout; } <<<"$facts"
+timeout=${timeout:-$default_timeout}
 
 # DIR/pids: every process this run starts (PID PGID START NAME, START its start time in
 # /proc/PID/stat), for scripts/stop_scenario.sh. A run whose processes still run keeps DIR;
@@ -99,7 +149,9 @@ pidfile=$out/pids
 exec 8<"$out"
 flock 8
 running=$(bash "$root/scripts/stop_scenario.sh" --list "$out")
-if [ -n "$running" ]; then
+if [ -z "$running" ] && [ -f "$out/hosts" ]; then
+  bash "$root/scripts/stop_scenario.sh" --quiet "$out"  # the network hosts a killed run left
+elif [ -n "$running" ]; then
   script=$(grep -m1 ' run_scenario$' <<<"$running" || true)
   if [ -n "$script" ]; then
     echo "run_scenario: $out is in use by another run (run_scenario pid ${script%% *}); stop it with Ctrl-C there, or $stop_script $out" >&2
@@ -125,7 +177,7 @@ exec 8<&-
 tty=0
 [ ! -t 1 ] || tty=1  # the progress line is redrawn in place on a terminal only
 pids=() names=()
-stop_all() {  # stop every process of the run (scripts/stop_scenario.sh: newest first, the master last)
+stop_all() {  # stop every process of the run and remove its hosts (scripts/stop_scenario.sh: newest first, the master last)
   trap - EXIT INT TERM HUP
   bash "$root/scripts/stop_scenario.sh" --quiet "$out" || true
   wait 2>/dev/null || true
@@ -140,8 +192,26 @@ source "$root/scripts/env.sh"
 py="$root/.venv/bin/python"
 export PYTHONUNBUFFERED=1
 
+# With --hosts: host master (the master, drvs_server, this script's helpers), host sim
+# (world_sim, the recorders), hosts cameras1, cameras2, ... (CAMERAS_PER_HOST vision systems
+# each) and a host per robot, named as it. DIR/hosts names them for scripts/stop_scenario.sh.
+camera_count=$(wc -w <<<"$cameras")
+at_master=()  # the words that run a command on host master (none without --hosts)
+if [ $hosts -eq 1 ]; then
+  hosts_init "drvs$$" || exit 1
+  echo "$HOSTS_PREFIX" >"$out/hosts"
+  master_ip=$(hosts_add master) || exit 1
+  hosts_add sim >/dev/null || exit 1
+  for ((i = 1; i <= (camera_count + CAMERAS_PER_HOST - 1) / CAMERAS_PER_HOST; i++)); do
+    hosts_add "cameras$i" >/dev/null || exit 1
+  done
+  for robot in $robots; do hosts_add "$robot" >/dev/null || exit 1; done
+  [ -z "$link" ] || hosts_limit "${robots%% *}" "$link" || exit 1
+  mapfile -t at_master < <(hosts_command master)
+fi
+
 master_answers() {  # master_answers SECONDS: whether the master at $ROS_MASTER_URI answers by then
-  "$py" - "$1" <<'EOF'
+  "${at_master[@]}" "$py" - "$1" <<'EOF'
 import http.client, os, socket, sys, time, xmlrpc.client
 from xml.parsers.expat import ExpatError
 
@@ -167,39 +237,49 @@ fi
 rm -f "$out"/*.log "$out"/summary.json "$out"/run.png "$out"/status.line
 [ $record -eq 0 ] || rm -f "$out"/run.bag "$out"/run.bag.active
 
-start() {  # start NAME COMMAND...: a background process logging to $out/NAME.log, listed in DIR/pids
-  local name=$1; shift
-  "$@" >"$out/$name.log" 2>&1 &
+start() {  # start NAME HOST COMMAND...: a background process (on HOST with --hosts) logging to $out/NAME.log, listed in DIR/pids
+  local name=$1 host=$2 via=()
+  shift 2
+  [ $hosts -eq 0 ] || mapfile -t via < <(hosts_command "$host")
+  "${via[@]}" "$@" >"$out/$name.log" 2>&1 &
   pids+=($!) names+=("$name")
   note_pid "$name" $!
 }
 
 if [ $external -eq 0 ]; then
-  port=$("$py" -c 'from drvs.testing.harness import free_port; print(free_port())')
-  export ROS_MASTER_URI="http://127.0.0.1:$port/"
+  if [ $hosts -eq 1 ]; then
+    port=11311 address=$master_ip  # alone on its host
+  else
+    port=$("$py" -c 'from drvs.testing.harness import free_port; print(free_port())') address=127.0.0.1
+  fi
+  export ROS_MASTER_URI="http://$address:$port/"
   export ROS_HOME="$out/ros_home" ROS_LOG_DIR="$out/ros_log"
-  start rosmaster rosmaster --core -p "$port"
+  start rosmaster master rosmaster --core -p "$port"
   master_answers 20 || { echo "run_scenario: the private rosmaster on port $port does not answer; see $out/rosmaster.log" >&2; exit 1; }
 fi
 echo "run_scenario: stop with Ctrl-C, or $stop_script $out if this script is killed"
-
-cameras=$("$py" -c 'import sys; from drvs.world import load_world
-print(" ".join(c.name for c in load_world(sys.argv[1]).vision_systems))' "$world")
+# The world decides /use_sim_time (also on an external master a slower world's run had set),
+# before any node starts: each reads it once, at its start.
+"${at_master[@]}" "$py" -c 'import os, sys, xmlrpc.client
+xmlrpc.client.ServerProxy(os.environ["ROS_MASTER_URI"]).setParam("/run_scenario", "/use_sim_time", sys.argv[1] == "1")' "$sim_time"
 
 if [ $record -eq 1 ]; then
   # Listed in DIR/pids as bag_recorder: stopped after every node. Ready once it subscribes to every topic.
-  topics="/drvs/registry /drvs/markers /world_sim/poses /world_sim/ground_truth /robot/status /robot/path
-    /robot/map /robot/pose /robot/cmd_vel /scenario_recorder/samples /diagnostics /tf /tf_static /rosout"
+  topics="/drvs/registry /drvs/markers /drvs/stats /world_sim/poses /world_sim/ground_truth
+    /scenario_recorder/samples /diagnostics /tf /tf_static /rosout /clock"
+  for robot in $robots; do topics+=" /$robot/status /$robot/path /$robot/map /$robot/pose /$robot/cmd_vel"; done
   for camera in $cameras; do topics+=" /$camera/stats"; done
   # The program `rosbag record` runs, started directly: SIGINT reaches it (not a wrapper
   # that fails on the SIGINT it finds ignored in a background job) and its end is the bag's.
   # In a session of its own, so that a Ctrl-C in the terminal reaches it only through stop_all.
   record_bin=$("$py" -c 'import roslib.packages; print((roslib.packages.find_node("rosbag", "record") or [""])[0])')
   [ -x "$record_bin" ] || { echo "run_scenario: --record needs Debian's python3-rosbag (scripts/setup.sh installs it)" >&2; exit 2; }
+  at_sim=()
+  [ $hosts -eq 0 ] || mapfile -t at_sim < <(hosts_command sim)
   # shellcheck disable=SC2086
-  setsid "$record_bin" -O "$out/run.bag" __name:=bag_recorder $topics >"$out/bag_recorder.log" 2>&1 &
+  setsid "${at_sim[@]}" "$record_bin" -O "$out/run.bag" __name:=bag_recorder $topics >"$out/bag_recorder.log" 2>&1 &
   note_pid bag_recorder $! $!
-  "$py" - $topics <<'EOF' || { echo "run_scenario: rosbag record did not start; see $out/bag_recorder.log" >&2; exit 1; }
+  "${at_master[@]}" "$py" - $topics <<'EOF' || { echo "run_scenario: rosbag record did not start; see $out/bag_recorder.log" >&2; exit 1; }
 import os, sys, xmlrpc.client
 from drvs.testing.harness import wait_for
 def subscribed():
@@ -211,19 +291,22 @@ wait_for(subscribed, 20.0, 'rosbag record to subscribe', interval=0.1)
 EOF
 fi
 
-start drvs_server "$py" "$root/nodes/drvs_server" __name:=drvs
-start world_sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
+# world_sim first: under simulated time it drives the clock the others wait for.
+start world_sim sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
+start drvs_server master "$py" "$root/nodes/drvs_server" __name:=drvs
+i=0
 for camera in $cameras; do
+  host=cameras$((i / CAMERAS_PER_HOST + 1)) i=$((i + 1))
   if [ "$source" = topic ]; then
-    start "sim_$camera" "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
-    start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=true \
+    start "sim_$camera" "$host" "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
+    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=true \
       image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
   else
-    start "$camera" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
+    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
   fi
 done
 # The case study starts once DRVS is up: every camera registered with the server.
-"$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
+"${at_master[@]}" "$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
 import sys, threading
 import rospy
 from drvs.msg import Registry
@@ -237,33 +320,46 @@ rospy.Subscriber('/drvs/registry', Registry, on_registry)
 sys.exit(0 if done.wait(60.0) else 1)
 EOF
 if [ $rviz -eq 1 ]; then
-  start rviz rviz -d "$root/rviz/drvs.rviz"
+  start rviz master rviz -d "$root/rviz/drvs.rviz"
 fi
-start recorder "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _world:="$world" _out:="$out"
+start recorder sim "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _world:="$world" _out:="$out"
 recorder_pid=${pids[-1]}
+robot_args=(_world:="$world")
+[ -z "$requests" ] || robot_args+=(_requests:="$requests")
+[ $stay -eq 1 ] || robot_args+=(_once:=true)
+robot_pids=()
+for robot in $robots; do
+  start "$robot" "$robot" "$py" "$root/nodes/blind_robot" __name:="$robot" "${robot_args[@]}"
+  robot_pids+=("${pids[-1]}")
+done
 if [ $stay -eq 0 ]; then
-  start robot "$py" "$root/nodes/blind_robot" __name:=robot _world:="$world" _once:=true
-  robot_pid=${pids[-1]}
+  awaited=("${robot_pids[@]}")  # each exits when its robot is done: 0 arrived
 else
-  # The robot stays up after it is done, so its callback service is there to be
-  # called by hand; a watcher of its status ends the wait: 0 arrived, 1 failed.
-  start robot "$py" "$root/nodes/blind_robot" __name:=robot _world:="$world"
-  start robot_done "$py" "$root/scripts/wait_robot_done.py"
-  robot_pid=${pids[-1]}
+  # The robots stay up after they are done, so that their callback services are there to be
+  # called by hand; a watcher of their status ends the wait: 0 every one arrived, 1 not.
+  # shellcheck disable=SC2086
+  start robot_done sim "$py" "$root/scripts/wait_robot_done.py" $robots
+  awaited=("${pids[-1]}")
 fi
 
-echo "run_scenario: $(basename "$world") with ${cameras// /, } ($source); logs in $out"
+echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${link:+, the first robot on a $link link}); logs in $out"
 started=$SECONDS
 result=timeout
+declare -A ended=()  # pid of an awaited process -> its exit code
 shown_state="" shown_at=-5
 while [ $((SECONDS - started)) -lt "${timeout%.*}" ]; do
-  if ! kill -0 "$robot_pid" 2>/dev/null; then
-    if wait "$robot_pid"; then result=reached; else result=failed; fi
-    break
-  fi
+  for pid in "${awaited[@]}"; do
+    if [ -z "${ended[$pid]:-}" ] && ! kill -0 "$pid" 2>/dev/null; then
+      code=0
+      wait "$pid" || code=$?
+      ended[$pid]=$code
+    fi
+  done
+  if [ ${#ended[@]} -eq ${#awaited[@]} ]; then result=done; break; fi
   for i in "${!pids[@]}"; do
-    # Closing the RViz window is the user's choice, not a crash.
-    if ! kill -0 "${pids[$i]}" 2>/dev/null && [ "${pids[$i]}" != "$robot_pid" ] && [ "${names[$i]}" != rviz ]; then
+    # Closing the RViz window is the user's choice, not a crash; an awaited process ends.
+    if ! kill -0 "${pids[$i]}" 2>/dev/null && [ "${names[$i]}" != rviz ] \
+      && ! [[ " ${awaited[*]} " == *" ${pids[$i]} "* ]]; then
       [ $tty -eq 0 ] || echo
       echo "run_scenario: ${names[$i]} exited early; see $out/${names[$i]}.log" >&2
       result=crashed; break 2
@@ -286,17 +382,45 @@ finished=$((SECONDS - started))
 # The recorder writes summary.json and run.png when it is told to stop.
 kill -s INT "$recorder_pid" 2>/dev/null || true
 for _ in $(seq 100); do kill -0 "$recorder_pid" 2>/dev/null || break; sleep 0.1; done
+if [ -f "$out/summary.json" ]; then
+  "$py" -c 'import json, sys
+from drvs.report import figures_table
+print(figures_table(json.load(open(sys.argv[1]))))' "$out/summary.json" | sed 's/^/run_scenario: /'
+fi
+# Which robots did not reach their stations: from their own exit codes, or the watcher's lines.
+not_done=() failed=()
+if [ $stay -eq 0 ]; then
+  i=0
+  for robot in $robots; do
+    code=${ended[${robot_pids[$i]}]:-}
+    if [ -z "$code" ]; then not_done+=("$robot"); elif [ "$code" -ne 0 ]; then failed+=("$robot"); fi
+    i=$((i + 1))
+  done
+elif [ "$result" = done ] && [ "${ended[${awaited[0]}]}" -ne 0 ]; then
+  mapfile -t failed < <(cut -d' ' -f1 "$out/robot_done.log")
+fi
+[ "$result" != done ] || [ ${#failed[@]} -gt 0 ] || result=reached
+[ "$result" != done ] || result=failed
 if [ $stay -eq 1 ] && [ "$result" != crashed ]; then
-  echo "run_scenario: robot $result; DRVS and the robot keep running at $ROS_MASTER_URI until Ctrl-C"
+  case $result in
+    reached) outcome="every robot reached its station" ;;
+    failed) outcome="did not reach the station: ${failed[*]}" ;;
+    *) outcome="timed out after $timeout s" ;;
+  esac
+  echo "run_scenario: $outcome; DRVS and the robots keep running at $ROS_MASTER_URI until Ctrl-C"
   while true; do sleep 1; done
 fi
 stop_all
 
-case $result in
-  reached) echo "run_scenario: the robot reached the station after $finished s" ;;
-  failed) echo "run_scenario: the robot failed: $(tail -n 3 "$out/robot.log" | tr '\n' ' ')" >&2 ;;
-  timeout) echo "run_scenario: timed out after $timeout s" >&2 ;;
-esac
+[ "$result" != reached ] || echo "run_scenario: every robot reached its station after $finished s (${robots// /, })"
+for robot in "${failed[@]}"; do
+  if [ $stay -eq 0 ]; then
+    echo "run_scenario: $robot failed: $(tail -n 3 "$out/$robot.log" | tr '\n' ' ')" >&2
+  else
+    echo "run_scenario: $(grep -m1 "^$robot " "$out/robot_done.log")" >&2
+  fi
+done
+[ "$result" != timeout ] || echo "run_scenario: timed out after $timeout s${not_done:+; not done: ${not_done[*]}}" >&2
 [ -f "$out/summary.json" ] && echo "run_scenario: summary $out/summary.json, picture $out/run.png"
 [ -f "$out/run.bag" ] && [ $record -eq 1 ] && echo "run_scenario: bag $out/run.bag (nodes/drvs_report $out/run.bag)"
 [ "$result" = reached ]

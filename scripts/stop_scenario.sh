@@ -13,8 +13,9 @@
 # nodes newest first, then the bag recorder, then the private rosmaster, each
 # step SIGINT, then SIGTERM, then SIGKILL, with short deadlines; then whatever is
 # left of the script's process group, if the script led one. Then DIR/pids is
-# removed. Says what it stopped; exits 0 also when nothing was running.
-# run_scenario.sh stops its own processes through this script too.
+# removed, and the network hosts of a --hosts run (DIR/hosts names their prefix:
+# scripts/hosts.sh's hosts_cleanup). Says what it stopped; exits 0 also when nothing
+# was running. run_scenario.sh stops its own processes through this script too.
 set -euo pipefail
 
 usage() {
@@ -42,8 +43,20 @@ done
 file=$dir/pids
 say() { [ $quiet -eq 1 ] || echo "stop_scenario: $*"; }
 
+remove_hosts() {  # the network namespaces of a --hosts run, once its processes are stopped
+  local prefix
+  [ -f "$dir/hosts" ] || return 0
+  read -r prefix <"$dir/hosts"
+  # shellcheck source=scripts/hosts.sh
+  source "$(dirname "${BASH_SOURCE[0]}")/hosts.sh"
+  HOSTS_PREFIX=$prefix hosts_cleanup
+  rm -f "$dir/hosts"
+  say "removed the network hosts $prefix-*"
+}
+
 if [ ! -f "$file" ]; then
-  [ $list -eq 1 ] || say "nothing was running: no $file"
+  [ $list -eq 0 ] || exit 0
+  if [ -f "$dir/hosts" ]; then remove_hosts; else say "nothing was running: no $file"; fi
   exit 0
 fi
 
@@ -156,6 +169,7 @@ if [ -n "$script_pid" ] && [ "$script_group" = "$script_pid" ] && ! started "$sc
 fi
 
 rm -f "$file"
+remove_hosts
 if [ ${#stopped[@]} -eq 0 ]; then
   say "nothing was running for $dir; removed $file"
 else

@@ -1,7 +1,10 @@
-"""Wait until /robot/status says the robot arrived (exit 0) or failed (exit 1).
+"""Wait until every named robot's /NAME/status says it arrived or failed; exit 0 if all arrived, else 1.
 
-``run_scenario.sh --stay`` runs the robot without ``~once``, so that it and its
-callback service stay up after the run; this watcher ends the script's wait.
+``run_scenario.sh --stay`` runs the robots without ``~once``, so that they and their
+callback services stay up after the run; this watcher ends the script's wait. It
+prints one line per robot that did not arrive, ``NAME STATE: REASON``.
+
+    wait_robot_done.py NAME...
 """
 
 import sys
@@ -12,22 +15,31 @@ import rospy
 from drvs.msg import RobotStatus
 
 
-def main() -> int:
-    arrived: list[bool] = []
-    done = threading.Event()
+def main(names: list[str]) -> int:
+    done: dict[str, RobotStatus] = {}
+    lock = threading.Lock()  # guards done
+    all_done = threading.Event()
 
-    def on_status(msg: RobotStatus) -> None:
-        if msg.state in (RobotStatus.ARRIVED, RobotStatus.FAILED) and not done.is_set():
-            arrived.append(msg.state == RobotStatus.ARRIVED)
-            done.set()
+    def on_status(msg: RobotStatus, name: str) -> None:
+        if msg.state in (RobotStatus.ARRIVED, RobotStatus.FAILED):
+            with lock:
+                done.setdefault(name, msg)
+                if len(done) == len(names):
+                    all_done.set()
 
     rospy.init_node('run_scenario_robot_done', anonymous=True)
-    rospy.Subscriber('/robot/status', RobotStatus, on_status, queue_size=5)
-    while not done.wait(0.5):
+    for name in names:
+        rospy.Subscriber(f'/{name}/status', RobotStatus, on_status, callback_args=name, queue_size=5)
+    while not all_done.wait(0.5):
         if rospy.is_shutdown():
             return 130
-    return 0 if arrived[0] else 1
+    failed = [(name, done[name]) for name in names if done[name].state != RobotStatus.ARRIVED]
+    for name, msg in failed:
+        print(f'{name} {msg.state_name}: {msg.reason}')
+    return 1 if failed else 0
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    if len(sys.argv) < 2:
+        sys.exit(f'usage: {sys.argv[0]} NAME...  (the robots to wait for)')
+    sys.exit(main(rospy.myargv()[1:]))

@@ -7,6 +7,7 @@ refusals. Live: a recorded scenario, its bag, the regenerated report and ``rosba
 """
 
 import json
+import math
 import subprocess
 import sys
 
@@ -18,7 +19,7 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.msg import NodeCpu, RecorderSample, Registry, VisionSystemEntry
+from drvs.msg import NodeCpu, RecorderSample, Registry, ServerStats, VisionSystemEntry
 from drvs.report import write_report
 from drvs.ros.bag_report import read_bag, regenerate
 from drvs.ros.messages import robot_status_to_msg, stats_to_msg
@@ -32,6 +33,7 @@ WORLD = REPO / 'worlds' / 'localisation.yaml'
 SCENARIO_TIMEOUT = 150
 REQUIRED_TOPICS = (
     '/drvs/registry',
+    '/drvs/stats',
     '/drvs/markers',
     '/world_sim/poses',
     '/world_sim/ground_truth',
@@ -62,13 +64,14 @@ def cpu(node, first, last, start=100.0, end=104.0):
     )
 
 
-def sample(first_status, final=False, entries=()):
+def sample(first_status, final=False, entries=(), world=WORLD, wall_seconds=0.0):
     return RecorderSample(
         header=Header(stamp=genpy.Time.from_sec(100.0)),
-        world=str(WORLD),
+        world=str(world),
         first_status=genpy.Time.from_sec(first_status) if first_status else genpy.Time(),
         final=final,
         cpu=list(entries),
+        wall_seconds=wall_seconds,
     )
 
 
@@ -86,14 +89,34 @@ def test_cpu_summary_is_seconds_used_and_percent_of_one_core_over_the_sampled_ti
 
 
 # -- the same run, live and from a bag ------------------------------------------------------------------
-def truth(t, x, y, contacts=0):
-    return String(
-        data=json.dumps({'time': t, 'robot': {'position': [x, y]}, 'contacts': contacts, 'objects': {}})
+def truth(t, x, y, contacts=0, travelled=0.0):
+    """world_sim's ground truth as before fleets: the one robot under ``robot``."""
+    data = {'time': t, 'robot': {'position': [x, y]}, 'contacts': contacts, 'travelled': travelled}
+    return String(data=json.dumps({**data, 'objects': {}}))
+
+
+def fleet_truth(t, robots):
+    """world_sim's ground truth of a fleet: ``robots`` {name: (x, y, contacts, travelled)}."""
+    robots = {
+        name: {'position': [x, y], 'contacts': contacts, 'travelled': travelled}
+        for name, (x, y, contacts, travelled) in robots.items()
+    }
+    first = dict(next(iter(robots.values())))
+    data = {'time': t, 'robot': {'position': first.pop('position')}, **first, 'robots': robots}
+    return String(data=json.dumps({**data, 'objects': {}}))
+
+
+def status(t, state, replans=0, reason='', **figures):
+    msg = robot_status_to_msg(
+        {'state': state, 'stamp': t, 'replans': replans, 'reason': reason, 'position': [1.0, 2.0]}
     )
+    for key, value in figures.items():
+        setattr(msg, key, value)
+    return msg
 
 
-def status(t, state, replans=0):
-    return robot_status_to_msg({'state': state, 'stamp': t, 'replans': replans, 'position': [1.0, 2.0]})
+def server_stats(requests):
+    return ServerStats(requests=requests, watch_requests=requests // 4, forwards=2 * requests)
 
 
 def path(t, points):
@@ -119,8 +142,9 @@ def registry():
     return Registry(vision_systems=[entry])
 
 
-def stats(requests):
-    return stats_to_msg({'requests': requests, 'callbacks': requests // 2}, {'colour:1': requests}, stamp=1.0)
+def stats(requests, **figures):
+    counters = {'requests': requests, 'callbacks': requests // 2, **figures}
+    return stats_to_msg(counters, {'colour:1': requests}, stamp=1.0)
 
 
 def a_run():
@@ -138,11 +162,11 @@ def a_run():
         ('/scenario_recorder/samples', sample(2.0, entries=[cpu('/drvs', 1.0, 1.5, end=102.0)]), True),
         ('/robot/path', path(2.5, [(1.0, 2.0), (5.0, 3.0)]), True),
         ('/robot/status', status(3.0, 'moving'), True),
-        ('/world_sim/ground_truth', truth(3.0, 2.0, 2.5), True),
+        ('/world_sim/ground_truth', truth(3.0, 2.0, 2.5, travelled=1.125), True),
         ('/robot/map', grid_map(100), True),
         ('/robot/status', status(4.0, 'moving', replans=1), True),
         ('/robot/path', path(4.0, [(2.0, 2.5), (5.0, 3.0)]), True),
-        ('/world_sim/ground_truth', truth(4.5, 5.0, 3.0, contacts=1), True),
+        ('/world_sim/ground_truth', truth(4.5, 5.0, 3.0, contacts=1, travelled=4.25), True),
         ('/robot/status', status(5.5, 'arrived', replans=1), True),
         ('/vs2/stats', stats(7), True),
         ('/scenario_recorder/samples', sample(2.0, final=True, entries=drvs), True),
@@ -159,32 +183,140 @@ def write_bag(path, messages):
     return path
 
 
-def test_a_bag_of_the_run_gives_the_summary_the_live_recorder_wrote(tmp_path):
-    live = RunRecorder(load_world(WORLD))
+def live_and_from_a_bag(tmp_path, world, run):
+    """The summary the live recorder writes for ``run`` (what it saw), the recorder, and the bag
+    of the whole run."""
+    live = RunRecorder(load_world(world))
     handlers = {topic: handler for topic, (_, handler) in live.topics().items()}
     handlers['/scenario_recorder/samples'] = live.on_sample
-    for topic, msg, seen in a_run():
+    for topic, msg, seen in run:
         if seen:
             handlers[topic](msg)
     assert live.closed
     live_summary = write_report(live.record, tmp_path / 'live')
-    bag = write_bag(tmp_path / 'run.bag', [(topic, msg) for topic, msg, _ in a_run()])
+    bag = write_bag(tmp_path / 'run.bag', [(topic, msg) for topic, msg, _ in run])
 
     assert regenerate(bag, tmp_path / 'again') == live_summary
     assert json.loads((tmp_path / 'again' / 'summary.json').read_text()) == live_summary
     assert (tmp_path / 'again' / 'run.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    return live_summary, live, bag
+
+
+def test_a_bag_of_the_run_gives_the_summary_the_live_recorder_wrote(tmp_path):
+    live_summary, live, bag = live_and_from_a_bag(tmp_path, WORLD, a_run())
     # From the first status the live recorder saw (its samples say which) to arrival.
     assert live_summary['elapsed'] == 3.5
     assert (live_summary['reached'], live_summary['state'], live_summary['replans']) == (True, 'arrived', 1)
     assert live_summary['collisions'] == 1
-    assert live_summary['driven_length'] == pytest.approx(1.118 + 3.041, abs=1e-3)
+    assert live_summary['driven_length'] == 4.25  # world_sim's odometer
     assert live_summary['vision_systems']['vs1']['requests'] == 2  # not 9: that came after the end
     assert live_summary['vision_systems']['vs2']['callbacks'] == 3
     assert live_summary['cpu'] == {'/drvs': {'seconds': 2.0, 'percent': 25.0}}
     replayed = read_bag(bag).record
-    assert [plan for _, plan in replayed.plans] == [plan for _, plan in live.record.plans]
+    robot, live_robot = replayed.robots['robot'], live.record.robots['robot']
+    assert [plan for _, plan in robot.plans] == [plan for _, plan in live_robot.plans]
     assert replayed.fields_of_view == live.record.fields_of_view
     assert (replayed.grid == live.record.grid).all()
+
+
+FLEET_WORLD = """
+floor: {size: [6.0, 4.0]}
+robots:
+  - {name: robot1, position: [1.0, 3.0], size: [0.3, 0.3, 0.2], colour: [0, 200, 0], speed: 0.4,
+     station: {position: [5.0, 1.0], size: [0.4, 0.3, 0.1], colour: [0, 0, 220]},
+     colour_models: {self: "colour:0,150,0,80,255,80", station: "colour:0,0,150,80,80,255"}}
+  - {name: robot2, position: [1.0, 1.0], size: [0.3, 0.3, 0.2], colour: [200, 200, 0], speed: 0.4,
+     station: {position: [5.0, 3.0], size: [0.4, 0.3, 0.1], colour: [0, 200, 200]},
+     colour_models: {self: "colour:150,150,0,255,255,80", station: "colour:0,150,150,80,255,255"}}
+vision_systems:
+  - {name: vs1, position: [3.0, 2.0, 4.0], fov_deg: 60}
+colour_models:
+  robot: "colour:0,150,0,255,255,80"
+  obstacle: "colour:40,40,40,90,90,90"
+  human: "colour:150,0,0,255,80,80"
+"""
+
+
+def a_fleet_run(world):
+    """(topic, message, seen live) of a run of two robots: robot1 arrives, robot2 fails."""
+
+    def at(t, one, two, contacts=(0, 0)):
+        travelled = math.dist((1.0, 3.0), one), 0.0  # robot1 drives, robot2 stays
+        return fleet_truth(
+            t, {'robot1': (*one, contacts[0], travelled[0]), 'robot2': (*two, contacts[1], travelled[1])}
+        )
+
+    return [
+        ('/robot1/status', status(1.0, 'localising'), False),
+        ('/drvs/stats', server_stats(2), False),
+        ('/world_sim/ground_truth', at(0.5, (1.0, 3.0), (1.0, 1.0)), False),
+        ('/drvs/registry', registry(), True),
+        ('/world_sim/ground_truth', at(1.5, (1.0, 3.0), (1.0, 1.0)), True),
+        ('/robot1/status', status(2.0, 'localising'), True),
+        ('/robot2/status', status(2.5, 'localising'), True),
+        ('/scenario_recorder/samples', sample(2.0, world=world), True),
+        ('/world_sim/ground_truth', at(3.0, (2.0, 3.0), (1.0, 1.0)), True),
+        ('/robot1/path', path(3.0, [(1.0, 3.0), (5.0, 1.0)]), True),
+        ('/robot2/path', path(3.0, [(1.0, 1.0), (5.0, 3.0)]), True),
+        ('/robot1/map', grid_map(99), True),
+        ('/robot2/map', grid_map(100), True),
+        ('/robot1/status', status(4.0, 'moving', replans=1, requests=5, watch_calls=5), True),
+        ('/robot1/path', path(4.0, [(2.0, 3.0), (5.0, 1.0)]), True),
+        ('/world_sim/ground_truth', at(5.0, (5.0, 3.0), (1.0, 1.0), contacts=(0, 2)), True),
+        ('/robot1/status', status(6.0, 'arrived', 1, '', requests=6, watch_calls=6, callbacks=30), True),
+        ('/robot2/status', status(7.5, 'failed', 0, 'no route', callbacks=4, callback_bytes=999), True),
+        ('/robot2/status', status(8.5, 'failed', 0, 'no route', callbacks=4, callback_bytes=999), True),
+        ('/drvs/stats', server_stats(12), True),
+        ('/vs1/stats', stats(3, watch_calls=11, watch_evaluations=40, renders=20), True),
+        ('/scenario_recorder/samples', sample(2.0, True, world=world, wall_seconds=11.0), True),
+        ('/drvs/stats', server_stats(99), False),
+        ('/robot1/status', status(9.0, 'arrived', 1, '', requests=60), False),
+    ]
+
+
+def test_a_bag_of_a_fleet_run_gives_a_row_per_robot_and_the_figures(tmp_path):
+    world = tmp_path / 'fleet.yaml'
+    world.write_text(FLEET_WORLD)
+    summary, live, _ = live_and_from_a_bag(tmp_path, world, a_fleet_run(world))
+    rows = {row['name']: row for row in summary['robots']}
+    assert list(rows) == ['robot1', 'robot2']
+    one, two = rows['robot1'], rows['robot2']
+    # Elapsed from the run's first status (the sample's) to arrival, or failure: later statuses
+    # of a robot that is done do not count.
+    assert (one['reached'], one['elapsed'], one['arrival'], one['replans']) == (True, 4.0, 4.0, 1)
+    assert (two['reached'], two['elapsed'], two['arrival'], two['state'], two['reason']) == (
+        False,
+        5.5,
+        None,
+        'failed',
+        'no route',
+    )
+    assert (one['requests'], one['watch_calls'], one['callbacks'], one['collisions']) == (6, 6, 30, 0)
+    assert (two['callbacks'], two['callback_bytes'], two['collisions']) == (4, 999, 2)
+    assert (one['driven_length'], two['driven_length']) == (pytest.approx(4.0), 0.0)
+    assert (summary['reached'], summary['elapsed'], summary['replans'], summary['collisions']) == (
+        False,
+        5.5,
+        1,
+        2,
+    )
+    assert summary['server']['requests'] == 12  # not 99: that came after the end
+    assert (summary['server']['watch_requests'], summary['server']['forwards']) == (3, 24)
+    vs1 = summary['vision_systems']['vs1']
+    assert (vs1['watch_calls'], vs1['watch_evaluations'], vs1['renders']) == (11, 40, 20)
+    assert (summary['wall_seconds'], summary['real_time_factor']) == (11.0, 1.0)
+    assert (live.record.grid == 100).all()  # both robots' maps in one
+    assert [len(live.record.robots[name].plans) for name in ('robot1', 'robot2')] == [2, 1]
+
+
+def test_the_progress_line_of_a_fleet_counts_the_robots_by_state(tmp_path):
+    world = tmp_path / 'fleet.yaml'
+    world.write_text(FLEET_WORLD)
+    recorder = RunRecorder(load_world(world))
+    assert recorder.status_line() == 'state starting 2 | arrived 0 of 2 | replans 0 | collisions 0'
+    recorder.on_status(status(1.0, 'moving', replans=2), robot='robot1')
+    recorder.on_status(status(1.0, 'arrived'), robot='robot2')
+    assert recorder.status_line() == 'state arrived 1, moving 1 | arrived 1 of 2 | replans 2 | collisions 0'
 
 
 # -- drvs_report's refusals ------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ import pytest
 
 from drvs.testing import RosHarness, wait_for
 from drvs.testing.harness import REPO, free_port
+from drvs.testing.netns import hosts_call, namespaces_of, unavailable
 
 SCRIPT = 'scripts/run_scenario.sh'
 STOP = 'scripts/stop_scenario.sh'
@@ -26,8 +27,11 @@ OPTIONS = [
     '--external-master',
     '--stay',
     '--camera-source',
+    '--requests',
     '--rviz',
     '--record',
+    '--hosts',
+    '--robot-link',
     '--help',
 ]
 
@@ -99,6 +103,45 @@ def test_a_usage_error_exits_2_with_the_usage_on_stderr(argv, first_line):
     assert result.stderr.startswith(first_line)
     assert f'usage: {SCRIPT} WORLD' in result.stderr
     assert result.stderr.endswith(f'({SCRIPT} --help describes the options)\n')
+
+
+@pytest.mark.parametrize(
+    'options, message',
+    [
+        (['--requests', 'often'], '--requests is poll or watch, got often'),
+        (['--timeout', 'soon'], '--timeout needs seconds, got soon'),
+        (['--robot-link', '2mbit'], '--robot-link needs --hosts'),
+        (
+            ['--hosts', '--external-master'],
+            '--hosts runs its own master on host master: not with --external-master',
+        ),
+    ],
+    ids=['requests', 'timeout', 'robot-link without hosts', 'hosts with an external master'],
+)
+def test_a_bad_option_value_is_one_line_and_exit_2(tmp_path, options, message):
+    result = run([SCRIPT, WORLD, *options, '--out', str(tmp_path)])
+    assert (result.returncode, result.stdout, result.stderr) == (2, '', f'run_scenario: {message}\n')
+    assert not (tmp_path / 'pids').exists()
+
+
+def test_stop_scenario_removes_the_network_hosts_a_killed_run_left(tmp_path):
+    reason = unavailable()
+    if reason:
+        pytest.skip(f'no network hosts here: {reason}')
+    prefix = f'stoptest{os.getpid()}'
+    for function, *args in (('hosts_init', prefix), ('hosts_add', 'master'), ('hosts_add', 'robot1')):
+        hosts_call(function, *args, prefix=prefix)
+    try:
+        (tmp_path / 'hosts').write_text(f'{prefix}\n')  # as run_scenario.sh --hosts leaves it
+        result = run([STOP, str(tmp_path)])
+        assert (result.returncode, result.stdout) == (
+            0,
+            f'stop_scenario: removed the network hosts {prefix}-*\n',
+        )
+        assert namespaces_of(prefix) == []
+        assert not (tmp_path / 'hosts').exists()
+    finally:
+        hosts_call('hosts_cleanup', prefix=prefix)
 
 
 def test_external_master_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
@@ -219,8 +262,8 @@ def test_stop_scenario_cleans_up_after_a_killed_run_and_a_second_run_is_refused(
     nodes = entries[1:]
     assert [n for _, _, n in nodes] == [
         'rosmaster',
-        'drvs_server',
         'world_sim',
+        'drvs_server',
         'vs1',
         'vs2',
         'recorder',

@@ -1,32 +1,37 @@
-"""The scenario recorder: watches a run and leaves its picture and summary.
+"""The scenario recorder: watches a run and leaves its picture, summary and figures.
 
 It is the scenario's observer, not part of DRVS. :class:`RunRecorder` turns the
-messages of a run — ground truth from world_sim, the robot's status, plans and
-map, the server's registry, every vision system's traffic counters and the
+messages of a run — ground truth from world_sim, every robot's status, plans and
+map, the server's registry and counters, every vision system's counters and the
 recorder's own samples (drvs/RecorderSample) — into a :class:`drvs.report.RunRecord`.
 It is fed either live, by the subscriptions of :class:`RecorderNode`, or from a
 bag in recorded order (:mod:`drvs.ros.bag_report`, ``drvs_report``): the same
-messages give the same summary. Nothing in it reads a clock or /proc: elapsed time
-counts between the robot's status stamps, and what only the live node can know
-(the per-node CPU use it samples from /proc, the first status it received, the
+messages give the same summary. Nothing in it reads a clock or /proc: a robot's
+elapsed time counts in ROS time (simulated under ``/use_sim_time``) from the run's
+first status, of any robot, to that robot's newest status up to its arrival or
+failure; what only the live node can know (the per-node CPU use it samples from
+/proc, the first status it received, the wall-clock seconds the run took, the
 world file, where it stopped) reaches it, and a bag, as a drvs/RecorderSample.
 
 :class:`RecorderNode` is the live node: it samples each node's CPU use and
 publishes it latched on ``~samples``, keeps a one-line progress report in
 ``~out/status.line`` (``run_scenario.sh`` shows it), and on shutdown publishes
-a final sample and writes ``~out/summary.json``, ``~out/trace.json`` (trajectory,
+a final sample and writes ``~out/summary.json``, ``~out/trace.json`` (trajectories,
 plans, re-plan points, humans' paths) and ``~out/run.png`` (:func:`drvs.report.write_report`).
 
 Parameters: :class:`RecorderSettings` (the README's table is generated from it).
 
-Topics read: ``/world_sim/ground_truth`` (JSON), ``/robot/status`` (drvs/RobotStatus),
-``/robot/path``, ``/robot/map``, ``/drvs/registry`` (drvs/Registry), ``/<camera>/stats``
+Topics read: ``/world_sim/ground_truth`` (JSON: each robot under ``robots``; a bag from
+before fleets has the one robot under ``robot``), for every robot NAME of the world
+``/NAME/status`` (drvs/RobotStatus), ``/NAME/path`` and ``/NAME/map``; ``/drvs/registry``
+(drvs/Registry), ``/drvs/stats`` (drvs/ServerStats), ``/<camera>/stats``
 (drvs/VisionSystemStats) for every camera of the world. Published: ``~samples``
 (drvs/RecorderSample, latched).
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import json
 import math
@@ -47,8 +52,8 @@ from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
 from drvs.guard import RESTART, LoopGuard
-from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, VisionSystemStats
-from drvs.report import RunRecord, write_report
+from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, ServerStats, VisionSystemStats
+from drvs.report import CAMERA_FIGURES, ROBOT_FIGURES, SERVER_FIGURES, RunRecord, write_report
 from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
 from drvs.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.world import World, load_world
@@ -58,6 +63,10 @@ TRACE_STEP = 0.01
 """Metres between two recorded trajectory points."""
 TAG_POSE_STEP = 0.4
 """Metres between two tag poses kept for the picture (one arrow every this far)."""
+DONE = ('arrived', 'failed')
+"""Robot states after which its status no longer counts towards its elapsed time."""
+QUEUE = 200
+"""Messages of one topic the live recorder may hold while it is busy (world_sim's truth comes every step)."""
 STATUS_LINE_PERIOD = 0.5
 """Seconds between two updates of ``status.line`` (and, at most, between two CPU samples)."""
 
@@ -99,11 +108,11 @@ class RunRecorder:
         self.record = RunRecord(world=world)
         self._lock = threading.Lock()  # guards self.record and every field below
         self._closed = False
-        self._status: dict = {}
-        self._first_status: genpy.Time | None = None  # of the first /robot/status received or sampled
-        self._counted_status: genpy.Time | None = None  # of the newest status up to arrival
-        self._last_trace: tuple[float, float] | None = None
-        self._robot_position: tuple[float, float] | None = None
+        self._status: dict[str, dict] = {}  # robot -> its newest status
+        self._first_status: genpy.Time | None = None  # of the first robot status received or sampled
+        self._counted_status: dict[str, genpy.Time] = {}  # robot -> its newest status up to the end
+        self._last_trace: dict[str, tuple[float, float]] = {}
+        self._robot_position: dict[str, tuple[float, float]] = {}
 
     @property
     def closed(self) -> bool:
@@ -120,11 +129,16 @@ class RunRecorder:
         """Every topic it reads (not the samples) -> (message type, handler)."""
         topics: dict[str, tuple[type, Callable]] = {
             '/world_sim/ground_truth': (String, self.on_truth),
-            '/robot/status': (RobotStatus, self.on_status),
-            '/robot/path': (PathMsg, self.on_path),
-            '/robot/map': (OccupancyGrid, self.on_map),
             '/drvs/registry': (Registry, self.on_registry),
+            '/drvs/stats': (ServerStats, self.on_server_stats),
         }
+        for robot in self.world.robots:
+            for name, message_type, handler in (
+                ('status', RobotStatus, self.on_status),
+                ('path', PathMsg, self.on_path),
+                ('map', OccupancyGrid, self.on_map),
+            ):
+                topics[f'/{robot.name}/{name}'] = (message_type, functools.partial(handler, robot=robot.name))
         for camera in self.world.vision_systems:
             handler = functools.partial(self.on_stats, camera=camera.name)
             topics[f'/{camera.name}/stats'] = (VisionSystemStats, handler)
@@ -133,15 +147,23 @@ class RunRecorder:
     # -- the messages -----------------------------------------------------------------------------
     def on_truth(self, msg: String) -> None:
         truth = json.loads(msg.data)
-        x, y = truth['robot']['position']
+        robots = truth.get('robots') or {  # a bag from before fleets: the one robot's
+            self.world.robots[0].name: {key: truth[key] for key in ('contacts', 'travelled')} | truth['robot']
+        }
         with self._lock:
             if self._closed:
                 return
-            self._robot_position = (x, y)
-            self.record.collisions = int(truth['contacts'])
-            if self._last_trace is None or math.dist(self._last_trace, (x, y)) >= TRACE_STEP:
-                self.record.trajectory.append((float(truth['time']), x, y))
-                self._last_trace = (x, y)
+            for name, robot in self.record.robots.items():
+                if name not in robots:
+                    continue
+                x, y = robots[name]['position']
+                self._robot_position[name] = (x, y)
+                robot.collisions = int(robots[name]['contacts'])
+                robot.travelled = float(robots[name]['travelled'])
+                last = self._last_trace.get(name)
+                if last is None or math.dist(last, (x, y)) >= TRACE_STEP:
+                    robot.trajectory.append((float(truth['time']), x, y))
+                    self._last_trace[name] = (x, y)
             for obstacle in self.world.objects:
                 pose = truth['objects'].get(obstacle.name)
                 if obstacle.moving and pose:
@@ -149,38 +171,45 @@ class RunRecorder:
                     if not trace or math.dist(trace[-1], pose[:2]) >= TRACE_STEP:
                         trace.append((pose[0], pose[1]))
 
-    def on_status(self, msg: RobotStatus) -> None:
+    def on_status(self, msg: RobotStatus, robot: str) -> bool:
+        """One status of ``robot``; True if it counted towards the robot's elapsed time."""
         status = robot_status_to_dict(msg)
         with self._lock:
             if self._closed:
-                return
+                return False
+            record = self.record.robots[robot]
             if self._first_status is None:
                 self._first_status = msg.header.stamp
             replans = int(status.get('replans', 0))
-            if replans > self.record.replans and self._robot_position is not None:
-                self.record.replan_points.append(self._robot_position)
-            self.record.replans = replans
-            self.record.state = status.get('state', '')
-            self.record.reason = status.get('reason') or ''
-            if not self.record.reached:
-                self._counted_status = msg.header.stamp
+            if replans > record.replans and robot in self._robot_position:
+                record.replan_points.append(self._robot_position[robot])
+            record.replans = replans
+            counted = record.state not in DONE
+            record.state = status.get('state', '')
+            record.reason = status.get('reason') or ''
+            for key in ROBOT_FIGURES:
+                setattr(record, key, getattr(msg, key))
+            if counted:
+                self._counted_status[robot] = msg.header.stamp
                 self._update_elapsed()
-            self.record.reached = self.record.reached or self.record.state == 'arrived'
+            record.reached = record.reached or record.state == 'arrived'
             pose = status.get('tag_pose')
-            poses = self.record.tag_poses
+            poses = record.tag_poses
             if pose and (not poses or math.dist(poses[-1][:2], pose[:2]) >= TAG_POSE_STEP):
                 poses.append(tuple(float(v) for v in pose))
-            self._status = status
+            self._status[robot] = status
+            return counted
 
-    def on_path(self, msg: PathMsg) -> None:
+    def on_path(self, msg: PathMsg, robot: str) -> None:
         """Keep the first plan and the plan of each re-plan, not every repair of the same route."""
         plan = [(p.pose.position.x, p.pose.position.y) for p in msg.poses]
         with self._lock:
-            if not self._closed and plan and len(self.record.plans) <= self.record.replans:
-                self.record.plans.append((msg.header.stamp.to_sec(), plan))
+            record = self.record.robots[robot]
+            if not self._closed and plan and len(record.plans) <= record.replans:
+                record.plans.append((msg.header.stamp.to_sec(), plan))
 
-    def on_map(self, msg: OccupancyGrid) -> None:
-        """Accumulate every cell the robot ever mapped as an obstacle: the run's detected objects."""
+    def on_map(self, msg: OccupancyGrid, robot: str) -> None:
+        """Accumulate every cell any robot ever mapped as an obstacle: the run's detected objects."""
         grid = np.asarray(msg.data, dtype=np.int8).reshape(msg.info.height, msg.info.width)
         with self._lock:
             if self._closed:
@@ -199,22 +228,22 @@ class RunRecorder:
             for entry in entries:
                 self.record.fields_of_view[entry['service_name']] = [tuple(p) for p in entry['field_of_view']]
 
+    def on_server_stats(self, msg: ServerStats) -> None:
+        with self._lock:
+            if not self._closed:
+                self.record.server = {key: getattr(msg, key) for key in SERVER_FIGURES}
+
     def on_stats(self, msg: VisionSystemStats, camera: str) -> None:
-        stats = stats_to_dict(msg)
         with self._lock:
             if self._closed:
                 return
             self.record.vision_systems[camera] = {
-                'requests': stats.get('requests', 0),
-                'callbacks': stats.get('callbacks', 0),
-                'callback_bytes': stats.get('callback_bytes', 0),
-                'renders': stats.get('renders', 0),
-                'cache_hits': stats.get('cache_hits', 0),
-                'requests_by_algorithm': stats.get('requests_by_algorithm', {}),
+                **{key: getattr(msg, key) for key in CAMERA_FIGURES},
+                'requests_by_algorithm': stats_to_dict(msg)['requests_by_algorithm'],
             }
 
     def on_sample(self, msg: RecorderSample) -> None:
-        """The live recorder's CPU figures and first status; a final one closes the recording."""
+        """The live recorder's CPU figures, first status and wall time; a final one closes the recording."""
         with self._lock:
             if self._closed:
                 return
@@ -222,26 +251,46 @@ class RunRecorder:
                 self._first_status = msg.first_status
                 self._update_elapsed()
             self.record.cpu = cpu_summary(msg.cpu)
+            self.record.wall_seconds = msg.wall_seconds
             self._closed = msg.final
 
     def _update_elapsed(self) -> None:
-        """Seconds from the first status to the newest one up to arrival (under the lock)."""
-        if self._first_status is not None and self._counted_status is not None:
-            self.record.elapsed = (self._counted_status - self._first_status).to_sec()
+        """Each robot's seconds from the first status to its newest counted one (under the lock)."""
+        if self._first_status is not None:
+            for name, stamp in self._counted_status.items():
+                self.record.robots[name].elapsed = (stamp - self._first_status).to_sec()
 
     # -- progress ---------------------------------------------------------------------------------
     def status_line(self) -> str:
-        """One line of progress: state, distance to goal, re-plans, collisions."""
+        """One line of progress: state, distance to goal (of the one robot; in a fleet how many are
+        in each state and arrived), re-plans, collisions."""
         with self._lock:
-            distance = self._status.get('distance_to_goal')
+            robots = self.record.robots.values()
+            totals = (
+                f'replans {sum(r.replans for r in robots)}',
+                f'collisions {sum(r.collisions for r in robots)}',
+            )
+            if len(self.record.robots) == 1:
+                (status,) = self._status.values() or ({},)
+                distance = status.get('distance_to_goal')
+                return ' | '.join(
+                    (
+                        f'state {status.get("state", "starting")}',
+                        f'distance to goal {distance:.2f} m'
+                        if isinstance(distance, int | float)
+                        else 'distance to goal ?',
+                        *totals,
+                    )
+                )
+            states = collections.Counter(
+                self._status.get(name, {}).get('state', 'starting') for name in self.record.robots
+            )
+            arrived = sum(r.reached for r in robots)
             return ' | '.join(
                 (
-                    f'state {self._status.get("state", "starting")}',
-                    f'distance to goal {distance:.2f} m'
-                    if isinstance(distance, int | float)
-                    else 'distance to goal ?',
-                    f'replans {self.record.replans}',
-                    f'collisions {self.record.collisions}',
+                    'state ' + ', '.join(f'{state} {n}' for state, n in sorted(states.items())),
+                    f'arrived {arrived} of {len(self.record.robots)}',
+                    *totals,
                 )
             )
 
@@ -263,6 +312,8 @@ class RecorderNode:
         self.recorder = RunRecorder(self.world)
         self._lock = threading.Lock()  # guards the fields below and the order of the samples
         self._cpu: dict[str, NodeCpu] = {}
+        self._first_wall: float | None = None  # time.monotonic() of the first status counted
+        self._wall_seconds = 0.0  # from the first counted status to the newest
         self._finished = False
         self.samples_pub: rospy.Publisher | None = None
         # The sampler asks the master for every node: it fails while a master restarts; it restarts.
@@ -280,10 +331,23 @@ class RecorderNode:
             warnings.simplefilter('ignore', SyntaxWarning)
             self.samples_pub = rospy.Publisher('~samples', RecorderSample, queue_size=None, latch=True)
         for topic, (message_type, handler) in self.recorder.topics().items():
-            queue_size = 1 if message_type is OccupancyGrid else 5
+            # Every message, as the bag has it (a trajectory missing a step is another length);
+            # of the maps, which each hold the robot's whole map, the newest.
+            queue_size = 1 if message_type is OccupancyGrid else QUEUE
+            if message_type is RobotStatus:
+                handler = functools.partial(self._on_status, handler=handler)
             rospy.Subscriber(topic, message_type, handler, queue_size=queue_size)
         rospy.on_shutdown(self.finish)  # runs before rospy's shutdown flag: it can still publish
         self.guard.spawn(self._sample_loop, 'cpu-sampler', RESTART)
+
+    def _on_status(self, msg: RobotStatus, handler: Callable[[RobotStatus], bool]) -> None:
+        """A robot's status into the recorder; while it counts, the wall clock's seconds with it."""
+        if handler(msg):
+            now = time.monotonic()
+            with self._lock:
+                if self._first_wall is None:
+                    self._first_wall = now
+                self._wall_seconds = now - self._first_wall
 
     # -- CPU and progress -------------------------------------------------------------------------
     def _sample_loop(self) -> None:
@@ -318,7 +382,7 @@ class RecorderNode:
             pids = self._node_pids()
         except OSError:
             return
-        now = rospy.Time.now()
+        now = genpy.Time.from_sec(time.time())  # CPU use per wall second, also under sim time
         with self._lock:
             if self._finished:
                 return
@@ -343,6 +407,7 @@ class RecorderNode:
             first_status=first_status if first_status is not None else genpy.Time(),
             final=final,
             cpu=[self._cpu[node] for node in sorted(self._cpu)],
+            wall_seconds=self._wall_seconds,
         )
         try:
             self.samples_pub.publish(msg)
