@@ -117,28 +117,51 @@ def ring(shape: Polygon) -> Outline:
     return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]
 
 
+def on_floor(frame: Frame, algorithm) -> list[tuple[Polygon, list | None, str]]:
+    """Every object ``algorithm`` (a :class:`drvs.algorithms.Parsed`) finds in ``frame``, on the
+    floor: (floor shape, ordered points or None, label). Whatever the region asked for, so that
+    several requests with one algorithm on one frame detect once (:func:`in_region` clips)."""
+    found = []
+    for pixel_object in algorithm.detect(frame):
+        if pixel_object.keep_order:
+            points = floor_points(frame, pixel_object)
+            if len(points) == len(pixel_object.outline):
+                corners = [(float(x), float(y)) for x, y, _ in points]
+                found.append((Polygon(corners), corners, pixel_object.label))
+            continue
+        for floor_shape in project_outline(frame, pixel_object):
+            found.append((floor_shape, None, pixel_object.label))
+    return found
+
+
+def in_region(
+    objects: list[tuple[Polygon, list | None, str]], region_of_interest: tuple[float, float, float, float]
+) -> list[tuple[Outline, str]]:
+    """(outline, label) of each of :func:`on_floor`'s ``objects`` that intersects
+    ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
+
+    An object whose vertex order means something (a tag, corner 0 first) is reported
+    whole, in its own order, when it intersects the region.
+    """
+    region = box(*region_of_interest)
+    found = []
+    for shape, ordered, label in objects:
+        if ordered is not None:
+            if shape.intersects(region):
+                found.append((ordered, label))
+            continue
+        for part in _polygons(shape.intersection(region)):
+            found.append((ring(part), label))
+    return found
+
+
 def locate_labelled(
     frame: Frame, algorithm, region_of_interest: tuple[float, float, float, float]
 ) -> list[tuple[Outline, str]]:
     """(outline, label) on the floor (``map``, counter-clockwise) of each object ``algorithm``
     (a :class:`drvs.algorithms.Parsed`) finds in ``frame`` that intersects
-    ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
-
-    An object whose vertex order means something (``keep_order``: a tag, corner 0
-    first) is reported whole, in its own order, when it intersects the region.
-    """
-    region = box(*region_of_interest)
-    found = []
-    for pixel_object in algorithm.detect(frame):
-        if pixel_object.keep_order:
-            points = floor_points(frame, pixel_object)
-            if len(points) == len(pixel_object.outline) and Polygon(points[:, :2]).intersects(region):
-                found.append(([(float(x), float(y)) for x, y, _ in points], pixel_object.label))
-            continue
-        for floor_shape in project_outline(frame, pixel_object):
-            for part in _polygons(floor_shape.intersection(region)):
-                found.append((ring(part), pixel_object.label))
-    return found
+    ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it (:func:`in_region`)."""
+    return in_region(on_floor(frame, algorithm), region_of_interest)
 
 
 def locate_objects(

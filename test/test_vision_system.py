@@ -109,7 +109,8 @@ def test_the_whole_path_from_world_to_robot(graph):
     clients = [ServiceClient('/vs1/detect_object_boundary', DetectObjectBoundary, 10.0) for _ in range(10)]
     for client in clients:
         assert not client.call(DetectObjectBoundaryRequest(algorithm='none')).accepted
-    before = stats_of(ros, 'vs1')
+    # ~stats come at most every 0.5 s: wait for the one that counts the ten refusals
+    before = wait_for(lambda: (s := stats_of(ros, 'vs1'))['refused'] >= 10 and s, 10, 'stats')
     barrier = threading.Barrier(10)
     message = DetectObjectBoundaryRequest(
         algorithm=world.colour_models['obstacle'], callback_service=CALLBACK, request_id='burst'

@@ -89,7 +89,8 @@ def test_watches_call_back_every_period_or_on_changes_and_stop_when_cancelled(gr
     assert len(callbacks('crate')) <= cancelled_at + 1
     assert len(callbacks('still')) == 1
 
-    stats = echo(ros, '/vs1/stats')
+    # ~stats come at most every 0.5 s: wait for the one that counts every watch call above
+    stats = wait_for(lambda: (s := echo(ros, '/vs1/stats'))['watch_calls'] >= 6 and s, 10, 'stats')
     assert (stats['watch_calls'], stats['watches']) == (6, 2)  # crate x2, still, cancels x2, ticker
     assert 0 < stats['callbacks'] <= len(read_json_lines(output))
     frames = stats['renders'] + stats['cache_hits']

@@ -73,6 +73,7 @@ class RenderSource:
         self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
         self.frame_id = optical_frame(config.name)
         self._broadcaster = None  # tf, made by start(): static for a fixed camera
+        self._fixed_footprint: list | None = None
 
     @property
     def moving(self) -> bool:
@@ -138,6 +139,10 @@ class RenderSource:
         return self.cache.get(rospy.get_time())[0]
 
     def footprint(self) -> list | None:
+        if not self.config.moving:  # asked 20 times a second: a fixed camera's never changes
+            if self._fixed_footprint is None:
+                self._fixed_footprint = self.base_camera.floor_footprint(self.world.floor_size)
+            return self._fixed_footprint
         return self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
 
     def unavailable(self) -> str | None:

@@ -77,7 +77,7 @@ Topics and services:
     Its sibling, e.g. ``/vs1/watch_object_boundary``: ``INVALID`` naming the field,
     ``UNAVAILABLE`` while the feed is stale, ``BUSY`` beyond ``~max_watches``; accepted
     with ``vision_systems`` 1 and the granted ``period`` and ``duration`` (a cancel: 0, 0, 0).
-``~stats`` (drvs/VisionSystemStats, latched)
+``~stats`` (drvs/VisionSystemStats, latched; at most every 0.5 s while the counts change)
     ``requests``, ``refused``, ``callbacks``, ``callback_failures``, ``callback_bytes``
     (serialized size of the callbacks sent), ``renders`` (frames rendered or decoded),
     ``no_frame`` (accepted requests dropped because no frame came), ``cache_hits``,
@@ -110,6 +110,7 @@ Topics and services:
 from __future__ import annotations
 
 import io
+import math
 import queue
 import threading
 import time
@@ -154,7 +155,7 @@ from drvs.srv import (
 from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
-from drvs.vision import draw_detections, locate_labelled
+from drvs.vision import draw_detections, in_region, locate_labelled, on_floor
 from drvs.watch_runner import Terms, WatchRunner, parse_watch
 from drvs.world import load_world
 
@@ -167,6 +168,9 @@ MAX_ALGORITHMS_COUNTED = 64
 POSE_RATE = 10.0
 """Times per second a camera on a moving mount (``render``) puts its pose on tf."""
 
+STATS_PERIOD = 0.5
+"""Least wall-clock seconds between two ``~stats`` messages: a busy camera counts hundreds of
+events a second, and every subscriber (the scenario recorder) would receive each one."""
 WATCH_POLL = 0.05
 """Longest wall-clock sleep of the watch loop: it looks again at the time of the next due watch
 (ROS time, which may run slower or faster than the wall under ``/use_sim_time``) and for new watches."""
@@ -337,6 +341,8 @@ class VisionSystemNode:
         self._streaming_until = -1.0  # motion: observe the stream until then (rospy time)
         self.service_name = ''
         self.stats = dict.fromkeys(STATS_COUNTERS, 0)
+        self._stats_changed = True  # since the last ~stats message
+        self._stats_published = -math.inf  # time.monotonic() of the last ~stats message
         self._stats_lock = threading.Lock()  # guards stats and requests_by_algorithm
         self.requests_by_algorithm: dict[str, int] = {}
         self._callback_clients = ClosingCache(
@@ -405,6 +411,10 @@ class VisionSystemNode:
             thread.join(timeout=self.params.callback_timeout + 1.0)
         if self._registered:
             self._call_register([], 'unregister')
+        try:
+            self._publish_stats()  # the final counts
+        except rospy.ROSException as error:  # publishing after shutdown
+            rospy.logdebug('could not publish the final stats: %s', error)
         self._register_client.close()
         self._callback_clients.clear()
         self.source.close()
@@ -589,9 +599,12 @@ class VisionSystemNode:
             self._streaming_until = max(self._streaming_until, now + self.params.motion_window)
         for algorithm in streaming:
             algorithm.observe(frame)
+        detected: dict[str, list] = {}  # algorithm text -> its objects on this frame: detect once
         for terms in due:
             try:
-                found = locate_labelled(frame, terms.algorithm, terms.region)
+                if terms.algorithm.text not in detected:
+                    detected[terms.algorithm.text] = on_floor(frame, terms.algorithm)
+                found = in_region(detected[terms.algorithm.text], terms.region)
             except Exception:  # one watch that fails must not stop the others
                 rospy.logerr(
                     '%s: watch %r failed:\n%s', rospy.get_name(), terms.request_id, traceback.format_exc()
@@ -642,6 +655,7 @@ class VisionSystemNode:
         attempt = 0
         while not self._stopping.wait(0.05):
             self._callback_clients.expire()  # close idle callback connections even when no request comes
+            self._publish_stats(at_most_every=STATS_PERIOD)  # counts that came too soon after the last
             footprint = self.source.footprint()
             if footprint is None or (not footprint and not self._registered):
                 if not self._registered:
@@ -756,7 +770,8 @@ class VisionSystemNode:
         with self._stats_lock:
             for key, value in increments.items():
                 self.stats[key] += value
-        self._publish_stats()
+            self._stats_changed = True
+        self._publish_stats(at_most_every=STATS_PERIOD)
 
     def _note_watches(self) -> None:
         """``watches`` in ``~stats``: the watches standing now (published when it changes)."""
@@ -764,17 +779,25 @@ class VisionSystemNode:
         with self._stats_lock:
             changed = self.stats['watches'] != standing
             self.stats['watches'] = standing
+            self._stats_changed |= changed
         if changed:
-            self._publish_stats()
+            self._publish_stats(at_most_every=STATS_PERIOD)
 
     def _count_algorithm(self, algorithm: str) -> None:
         with self._stats_lock:
             counts = self.requests_by_algorithm
             key = algorithm if algorithm in counts or len(counts) < MAX_ALGORITHMS_COUNTED else 'other'
             counts[key] = counts.get(key, 0) + 1
+            self._stats_changed = True
 
-    def _publish_stats(self) -> None:
+    def _publish_stats(self, at_most_every: float = 0.0) -> None:
+        """Publish ``~stats`` if they changed, unless the last message is younger than
+        ``at_most_every`` wall seconds (the registration loop publishes what is left)."""
         with self._stats_lock:
+            now = time.monotonic()
+            if not self._stats_changed or now - self._stats_published < at_most_every:
+                return
+            self._stats_changed, self._stats_published = False, now
             message = stats_to_msg(self.stats, self.requests_by_algorithm, rospy.get_time())
         self.stats_pub.publish(message)
 
