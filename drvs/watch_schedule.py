@@ -11,8 +11,9 @@ chose for that role and one duration for all. A call is due:
 
 - ``new``: the role has no standing watch (never granted, or it expired).
 - ``region``: the posted region's ``needed`` part is no longer inside the standing
-  watch's region, or the posted box is less than half its area (the robot found
-  itself after searching the whole floor; the robot-station box shrank). Nothing
+  watch's region, or the posted box is less than a quarter of its area (the robot
+  found itself after searching the whole floor; the robot-station box shrank well:
+  a larger region costs the cameras a little, every move costs a robot message). Nothing
   else moves a watch, so a moving robot re-sends a watch only when it nears its
   edge (:data:`SHRINK`).
 - ``renew``: half the *granted* duration has passed since the watch was sent.
@@ -69,7 +70,7 @@ __all__ = ['CANCEL', 'NEW', 'REGION', 'RENEW', 'SHRINK', 'WatchCall', 'WatchSche
 
 NEW, REGION, RENEW, CANCEL = 'new', 'region', 'renew', 'cancel'
 
-SHRINK = 0.5
+SHRINK = 0.25
 """A watch moves to a posted box smaller than this fraction of its own area."""
 
 

@@ -165,7 +165,7 @@ def test_a_moving_robot_moves_its_watches_seldom(schedule, clock):
         ('station', RENEW),
     ]
     assert sent.count(('self', REGION)) == 4  # 5.9 m: moved 1.25 m ahead each time it came near the edge
-    assert sent.count(('obstacle', REGION)) == 1  # the box halved; renewals carry the smaller box too
+    assert sent.count(('obstacle', REGION)) == 1  # once, when the box fell under a quarter of its area
     assert sent.count(('station', RENEW)) == sent.count(('obstacle', RENEW)) == 3  # every 5 s
     assert len(sent) == 14  # polling: 4 roles, 5 rounds a second, 400 requests
 
@@ -177,7 +177,9 @@ def test_a_box_that_shrinks_a_little_is_kept(schedule, clock):
     schedule.post({'obstacle': Region((2.0, 0.5, 6.5, 4.0), (2.5, 1.0, 6.0, 3.5))})  # 75 % of its area
     assert schedule.next_request() is None
     schedule.post({'obstacle': Region((4.0, 0.5, 6.5, 4.0), (4.5, 1.0, 6.0, 3.5))})  # 42 %
-    assert schedule.next_request() == WatchCall('obstacle', (4.0, 0.5, 6.5, 4.0), 0.5, 10.0, REGION)
+    assert schedule.next_request() is None
+    schedule.post({'obstacle': Region((5.5, 0.5, 6.5, 4.0), (5.6, 1.0, 6.0, 3.5))})  # 17 %
+    assert schedule.next_request() == WatchCall('obstacle', (5.5, 0.5, 6.5, 4.0), 0.5, 10.0, REGION)
 
 
 def test_a_temporary_refusal_is_retried_after_retry_after_while_the_old_watch_stands(schedule, clock):
@@ -321,7 +323,7 @@ def test_the_robot_drives_the_worlds_robot_named_as_its_node_or_its_only_one():
 def test_the_robots_watches():
     schedule = watch_schedule(RobotParams(world='unused.yaml'), (*ROLES, 'robot'))
     assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2, 'robot': 0.2}
-    assert (schedule.duration, schedule.keep_alive) == (10.0, {'self': 1.25})
+    assert (schedule.duration, schedule.keep_alive) == (20.0, {'self': 1.25})
     assert schedule.min_interval == 1 / 40
 
 

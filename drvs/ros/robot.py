@@ -247,7 +247,7 @@ class RobotParams(Settings):
         check=POSITIVE,
     )
     watch_duration: float = param(
-        10.0,
+        20.0,
         "a watch stands this long unless renewed (at half the granted time; the robot's own also "
         'when it heard nothing of itself for a quarter of `~fix_timeout`)',
         unit='s',
