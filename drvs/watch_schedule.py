@@ -11,9 +11,11 @@ chose for that role and one duration for all. A call is due:
 
 - ``new``: the role has no standing watch (never granted, or it expired).
 - ``region``: the posted region's ``needed`` part is no longer inside the standing
-  watch's region, or the posted box is less than a quarter of its area (the robot
-  found itself after searching the whole floor; the robot-station box shrank well:
-  a larger region costs the cameras a little, every move costs a robot message). Nothing
+  watch's region, or the posted box is less than a fraction of its area (``shrink``
+  per role, default :data:`SHRINK`: the robot found itself after searching the whole
+  floor; the robot asks a smaller fraction for the robot-station box, which shrinks
+  a little at a time as it drives: a larger region costs the cameras a little,
+  every move costs a robot message). Nothing
   else moves a watch, so a moving robot re-sends a watch only when it nears its
   edge (:data:`SHRINK`).
 - ``renew``: half the *granted* duration has passed since the watch was sent.
@@ -70,8 +72,8 @@ __all__ = ['CANCEL', 'NEW', 'REGION', 'RENEW', 'SHRINK', 'WatchCall', 'WatchSche
 
 NEW, REGION, RENEW, CANCEL = 'new', 'region', 'renew', 'cancel'
 
-SHRINK = 0.25
-"""A watch moves to a posted box smaller than this fraction of its own area."""
+SHRINK = 0.5
+"""A watch moves to a posted box smaller than this fraction of its own area (unless ``shrink`` says)."""
 
 
 @dataclass(frozen=True)
@@ -110,6 +112,8 @@ class WatchSchedule(Scheduled):
     :param periods: role -> seconds between evaluations to ask for.
     :param duration: seconds each watch should stand unless renewed.
     :param keep_alive: role -> seconds without an answer or a call after which it is renewed.
+    :param shrink: role -> the fraction of its area below which a posted box moves the watch
+        (default :data:`SHRINK`).
     :param max_rate: calls per second, at most, over all roles.
     :param base: first retry delay, seconds (:func:`drvs.retry.retry_delay`).
     :param cap: longest retry delay before jitter, unless the server's ``retry_after`` is longer.
@@ -123,6 +127,7 @@ class WatchSchedule(Scheduled):
         periods: Mapping[str, float],
         duration: float,
         keep_alive: Mapping[str, float] | None = None,
+        shrink: Mapping[str, float] | None = None,
         max_rate: float = 40.0,
         base: float = 0.1,
         cap: float = 1.0,
@@ -138,6 +143,11 @@ class WatchSchedule(Scheduled):
                 raise ValueError(f'{what}: must be a positive number of seconds, got {seconds}')
         if not set(keep_alive) <= set(periods):
             raise ValueError(f'keep_alive: expected roles of periods ({", ".join(periods)})')
+        shrink = dict(shrink or {})
+        for role, fraction in shrink.items():
+            if not 0 < fraction <= 1:
+                raise ValueError(f'shrink[{role!r}]: must be in (0, 1], got {fraction}')
+        self.shrink = shrink
         self.periods = dict(periods)
         self.duration = duration
         self.keep_alive = keep_alive
@@ -270,7 +280,9 @@ class WatchSchedule(Scheduled):
         wanted = self._wanted[role]
         if watch.expires <= now:
             at, reason = now, NEW
-        elif not _inside(wanted.needed, watch.region) or _area(wanted.box) < SHRINK * _area(watch.region):
+        elif not _inside(wanted.needed, watch.region) or _area(wanted.box) < self.shrink.get(
+            role, SHRINK
+        ) * _area(watch.region):
             at, reason = now, REGION
         else:
             at, reason = watch.renew_at, RENEW

@@ -134,7 +134,7 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros, mo
         return
     assert status['watch_calls'] == status['requests'] == len(sent) - 4  # then it cancelled its 4 watches
     assert status['watches'] == 4
-    assert all(e['duration'] == 10.0 for e in sent[:-4])
+    assert all(e['duration'] == 20.0 for e in sent[:-4])
     assert sorted((e['role'], e['duration']) for e in sent[-4:]) == [
         ('human', 0.0),
         ('obstacle', 0.0),

@@ -165,7 +165,7 @@ def test_a_moving_robot_moves_its_watches_seldom(schedule, clock):
         ('station', RENEW),
     ]
     assert sent.count(('self', REGION)) == 4  # 5.9 m: moved 1.25 m ahead each time it came near the edge
-    assert sent.count(('obstacle', REGION)) == 1  # once, when the box fell under a quarter of its area
+    assert sent.count(('obstacle', REGION)) == 1  # the box halved; renewals carry the smaller box too
     assert sent.count(('station', RENEW)) == sent.count(('obstacle', RENEW)) == 3  # every 5 s
     assert len(sent) == 14  # polling: 4 roles, 5 rounds a second, 400 requests
 
@@ -177,9 +177,20 @@ def test_a_box_that_shrinks_a_little_is_kept(schedule, clock):
     schedule.post({'obstacle': Region((2.0, 0.5, 6.5, 4.0), (2.5, 1.0, 6.0, 3.5))})  # 75 % of its area
     assert schedule.next_request() is None
     schedule.post({'obstacle': Region((4.0, 0.5, 6.5, 4.0), (4.5, 1.0, 6.0, 3.5))})  # 42 %
+    assert schedule.next_request() == WatchCall('obstacle', (4.0, 0.5, 6.5, 4.0), 0.5, 10.0, REGION)
+
+
+def test_a_role_may_keep_its_box_until_it_shrank_further(clock):
+    schedule = WatchSchedule({'obstacle': 0.5}, 10.0, shrink={'obstacle': 0.25}, clock=clock, rng=lambda: 0.0)
+    schedule.post({'obstacle': Region(ROI, (1.0, 1.0, 6.0, 3.5))})
+    accept(schedule, schedule.next_request())
+    clock.now += 1.0
+    schedule.post({'obstacle': Region((4.0, 0.5, 6.5, 4.0), (4.5, 1.0, 6.0, 3.5))})  # 42 %
     assert schedule.next_request() is None
     schedule.post({'obstacle': Region((5.5, 0.5, 6.5, 4.0), (5.6, 1.0, 6.0, 3.5))})  # 17 %
     assert schedule.next_request() == WatchCall('obstacle', (5.5, 0.5, 6.5, 4.0), 0.5, 10.0, REGION)
+    with pytest.raises(ValueError, match=r"shrink\['obstacle'\]: must be in \(0, 1\], got 0"):
+        WatchSchedule({'obstacle': 0.5}, 10.0, shrink={'obstacle': 0})
 
 
 def test_a_temporary_refusal_is_retried_after_retry_after_while_the_old_watch_stands(schedule, clock):

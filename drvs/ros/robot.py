@@ -300,6 +300,8 @@ def watch_schedule(params: RobotParams, roles, **kwargs) -> WatchSchedule:
     for a quarter of ``~fix_timeout``: with ``changes_only`` a robot standing still gets no
     callback, and a renewal makes the vision systems report in full, so its fix stays younger
     than half ``~fix_timeout`` (beyond which it would look for itself over the whole floor).
+    The robot-station box of the obstacle roles shrinks a little at a time as the robot drives:
+    its watches move only once it fell under a quarter of their area.
     """
     periods = dict.fromkeys(roles, 1.0 / params.rate)
     periods.update(dict.fromkeys(set(STATIC_ROLES) & set(roles), params.obstacle_period))
@@ -308,6 +310,7 @@ def watch_schedule(params: RobotParams, roles, **kwargs) -> WatchSchedule:
         periods,
         params.watch_duration,
         keep_alive={'self': params.fix_timeout / 4},
+        shrink={role: 0.25 for role in roles if role not in LOCALISATION_ROLES},
         max_rate=params.max_request_rate,
         cap=params.retry_cap,
         **kwargs,
