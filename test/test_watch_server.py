@@ -196,6 +196,19 @@ def test_bad_watch_calls_are_refused_naming_the_field(ros, make_graph, watcher):
         )
     finally:
         other.close()
+    # The last vision system running the watch's algorithm stops running it: a renewal still
+    # stands (for the vision systems to come), a new watch with that algorithm is UNSUPPORTED.
+    ros.master.call('setParam', '/vw/algorithms', ['apriltag'])
+    wait_for(lambda: graph.registrations('vw')[-1]['algorithms'] == ['apriltag'], 10, 'vw runs apriltag only')
+    assert outcome(watcher('early')) == (
+        True,
+        ACCEPTED,
+        0,
+        "watch 'early' renewed; 0 vision systems serve it",
+    )
+    assert outcome(watcher('new'))[:3] == (False, UNSUPPORTED, 0)
+    ros.master.call('setParam', '/vw/algorithms', [])
+    wait_for(lambda: graph.registrations('vw')[-1]['algorithms'] == [], 10, 'vw runs the built-ins again')
     # As rosservice calls it, with YAML fields.
     fields = (
         f"{{algorithm: '{COLOUR}', region_of_interest: {{min_x: 0, min_y: 0, max_x: 1, max_y: 1}}, "

@@ -690,7 +690,12 @@ class DrvsServer:
         algorithm, region = self._request_fields(request) if stands else ('', (0.0, 0.0, 0.0, 0.0))
         if stands:
             self._check_callback(request.callback_service)
-            self._check_supported(algorithm)
+            with self._watch_lock:
+                standing = self.watches.get((caller, request.request_id))
+            if standing is None or standing.algorithm_name != algorithm:
+                # A renewal with the same algorithm is never UNSUPPORTED: the watch stands for the
+                # vision systems that will come, as it did when the last one running it left.
+                self._check_supported(algorithm)
         with self._watch_lock:
             try:
                 answer = self.watches.request(
