@@ -155,14 +155,23 @@ class ObstacleMemory:
         if not (ttl > 0 and math.isfinite(ttl)):
             raise OccupancyError(f'obstacle_ttl: expected a positive number of seconds, got {ttl}')
         self.ttl = ttl
-        self._sources: dict[Hashable, tuple[float, list[Polygon]]] = {}
+        self._sources: dict[Hashable, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)
 
-    def observe(self, source: Hashable, outlines: Sequence[Polygon], now: float) -> None:
-        """``source`` reports everything it now sees: its earlier outlines are replaced."""
-        self._sources[source] = (now, list(outlines))
+    def observe(self, source: Hashable, outlines: Sequence[Polygon], now: float, linger: float = 0.0) -> None:
+        """``source`` reports everything it now sees: its earlier outlines are replaced.
+
+        :param linger: a report of nothing keeps the outlines it replaces this many seconds
+            more (never beyond their ``ttl``): an obstacle that vanishes from one report (a
+            person who stopped fades out of a motion model) is not driven into at once.
+        """
+        if not outlines and linger > 0 and source in self._sources:
+            until, before = self._sources[source]
+            self._sources[source] = (min(until, now + linger), before)
+            return
+        self._sources[source] = (now + self.ttl, list(outlines))
 
     def current(self, now: float) -> dict[Hashable, list[Polygon]]:
         """Outlines of every source heard within ``ttl``; older sources are forgotten."""
-        for source in [s for s, (seen, _) in self._sources.items() if now - seen > self.ttl]:
+        for source in [s for s, (until, _) in self._sources.items() if now > until]:
             del self._sources[source]
         return {source: outlines for source, (_, outlines) in self._sources.items()}

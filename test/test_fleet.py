@@ -5,7 +5,8 @@ requests (watches, their default) and again with the paper's one-shot requests
 (``--requests poll``): every robot reaches its station both ways, the summary has a
 sane row per robot and the figures, and the server receives at least ten times fewer
 robot calls with watches. Then the same world with every part on a network host of its
-own (``--hosts``; skipped, with the reason, where network namespaces cannot be made).
+own (``--hosts``; the watch run itself where network namespaces can be made, and
+skipped with the reason where they cannot).
 Slow: the crossing world on simulated time (``real_time_factor`` 0.5), recorded and
 regenerated from its bag, and ``worlds/warehouse.yaml`` (six robots, 35 cameras).
 """
@@ -109,13 +110,17 @@ def server_calls(summary: dict) -> int:
 @pytest.fixture(scope='module')
 def crossing():
     """``crossing(requests)``: the crossing world's run with ``--requests requests``, made once
-    per module (the rows test and the comparison share the watch run)."""
+    per module (the rows test, the comparison and the network hosts test share them). The
+    watch run is the one across network hosts, where they can be made here."""
     with RosHarness() as ros:
         runs = {}
 
         def run(requests: str) -> Run:
             if requests not in runs:
-                runs[requests] = run_scenario(ros, CROSSING, '--requests', requests)
+                options = ['--requests', requests]
+                if requests == 'watch' and not unavailable():
+                    options += ['--hosts', '--robot-link', '2mbit']
+                runs[requests] = run_scenario(ros, CROSSING, *options)
             return runs[requests]
 
         yield run
@@ -143,11 +148,11 @@ def test_with_watches_the_server_receives_ten_times_fewer_robot_calls_than_polli
     assert 10 * calls['watch'] <= calls['poll'], calls
 
 
-def test_crossing_across_network_hosts(ros: RosHarness):
+def test_crossing_across_network_hosts(crossing):
     reason = unavailable()
     if reason:
         pytest.skip(f'no network hosts here: {reason}')
-    run = run_scenario(ros, CROSSING, '--hosts', '--robot-link', '2mbit')
+    run = crossing('watch')
     assert run.code == 0, run.logs
     check_fleet_summary(run.summary, CROSSING, run.logs)
     # Each node registered from its host's address (the master's log): the master and the

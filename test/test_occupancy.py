@@ -82,6 +82,21 @@ def test_obstacle_memory_forgets_a_source_after_its_ttl():
     assert memory.current(11.4) == {('human', '/vs2'): []}
 
 
+def test_a_report_of_nothing_may_let_the_outlines_linger_but_never_beyond_their_ttl():
+    memory = ObstacleMemory(ttl=10.0)
+    human = [box(2, 2, 3, 3)]
+    memory.observe(('human', '/vs2'), human, now=10.0)
+    memory.observe(('human', '/vs2'), [], now=11.0, linger=1.5)  # gone: kept 1.5 s more
+    assert memory.current(12.4) == {('human', '/vs2'): human}
+    assert memory.current(12.6) == {}
+    memory.observe(('human', '/vs2'), human, now=20.0)
+    memory.observe(('human', '/vs2'), [], now=29.5, linger=1.5)  # the ttl ends first
+    assert memory.current(29.9) == {('human', '/vs2'): human}
+    assert memory.current(30.1) == {}
+    memory.observe(('human', '/vs2'), [], now=31.0, linger=1.5)  # nothing to keep: nothing, heard
+    assert memory.current(31.1) == {('human', '/vs2'): []}
+
+
 @pytest.mark.parametrize(
     'costs_row, expected',
     [

@@ -201,7 +201,7 @@ class RobotParams(Settings):
     obstacle_ttl: float = param(
         1.5,
         "polling, a vision system's obstacle outlines are forgotten this long after it last reported "
-        'them (with watches: after `~watch_duration`)',
+        'them; with watches, this long after it reported them gone (and after `~watch_duration` at most)',
         unit='s',
         check=POSITIVE,
     )
@@ -486,7 +486,9 @@ class BlindRobot:
                 rospy.logwarn('ignored a callback from %s: %s', req.vision_system or '?', error)
                 return CallbackCoordinatesResponse()
             if answer is not None and answer.role in self.perception.obstacle_roles:
-                self.memory.observe((answer.role, answer.vision_system), answer.outlines, received)
+                # A watch's "all gone" keeps the outlines ~obstacle_ttl more, as polling would.
+                source = (answer.role, answer.vision_system)
+                self.memory.observe(source, answer.outlines, received, linger=self.params.obstacle_ttl)
         return CallbackCoordinatesResponse()
 
     # -- requests: the requester thread ------------------------------------------------------
