@@ -9,7 +9,14 @@ from shapely.geometry import box
 import drvs.watch_schedule
 from drvs.perception import Fix, Region, RegionPolicy
 from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome
-from drvs.ros.robot import RobotParams, fleet_robot, request_schedule, watch_schedule
+from drvs.ros.robot import (
+    MAX_CELLS,
+    RobotParams,
+    fleet_robot,
+    grid_resolution,
+    request_schedule,
+    watch_schedule,
+)
 from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, UNSUPPORTED
 from drvs.testing import ManualClock
 from drvs.watch_schedule import CANCEL, NEW, REGION, RENEW, WatchCall, WatchSchedule
@@ -374,3 +381,9 @@ def test_watches_send_ten_times_fewer_calls_than_polling(roles):
     cancels = drain(watches, clock, respond=lambda s, call: s.on_response(call.role, ACCEPTED))
     assert sorted(call.role for call in cancels) == sorted(roles)
     assert polls.sent >= 10 * watches.sent, (polls.sent, watches.sent)
+
+
+def test_the_default_grid_is_5_cm_unless_the_floor_would_need_more_than_max_cells():
+    assert grid_resolution((7.0, 5.5)) == 0.05  # the paper's floor: 15,400 cells
+    resolution = grid_resolution((24.0, 14.0))  # the warehouse
+    assert resolution == 0.1 and (24.0 / resolution) * (14.0 / resolution) <= MAX_CELLS

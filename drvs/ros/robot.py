@@ -170,6 +170,21 @@ OWN_TRAIL = 4.0
 """Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
 
 
+MAX_CELLS = 40_000
+"""Cells of the default grid at most: D* Lite's first search over a 24 x 14 m warehouse at 0.05 m
+(134,400 cells) holds the control loop, and with it the callbacks, for seconds on a loaded machine."""
+
+
+def grid_resolution(floor_size) -> float:
+    """The default cell size: 0.05 m, or the next centimetre that keeps the grid within MAX_CELLS.
+
+    >>> grid_resolution((7.0, 5.5)), grid_resolution((24.0, 14.0))
+    (0.05, 0.1)
+    """
+    width, height = floor_size
+    return max(0.05, math.ceil(math.sqrt(width * height / MAX_CELLS) * 100) / 100)
+
+
 @dataclass(frozen=True)
 class RobotParams(Settings):
     world: str = param(REQUIRED, 'the world file: colour models, floor size, robot size and speed')
@@ -187,7 +202,13 @@ class RobotParams(Settings):
     rate: float = param(
         5.0, 'control ticks (and, polling, rounds of DRVS requests) per second', unit='Hz', check=POSITIVE
     )
-    resolution: float = param(0.05, 'occupancy grid cell size', unit='m', check=POSITIVE)
+    resolution: float | None = param(
+        None,
+        'occupancy grid cell size',
+        unit='m',
+        check=POSITIVE,
+        default_text=f'0.05 m, coarser on a floor that would need more than {MAX_CELLS:,} cells',
+    )
     robot_radius: float | None = param(
         None,
         'inflation of obstacles (the default contains the body whatever its heading)',
@@ -359,7 +380,8 @@ class BlindRobot:
         self._trail_shape = Polygon()  # their union, grown by the robot's radius
         # A watch's vision systems re-report in full at each renewal: outlines of a dead one expire.
         self.memory = ObstacleMemory(params.watch_duration if self.watching else params.obstacle_ttl)
-        self.grid = CostGrid(GridSpec(self.floor_size, params.resolution), self.robot_radius)
+        resolution = params.resolution or grid_resolution(self.floor_size)
+        self.grid = CostGrid(GridSpec(self.floor_size, resolution), self.robot_radius)
         self.settings = ControllerSettings(
             speed=self.speed,
             goal_tolerance=params.goal_tolerance,
