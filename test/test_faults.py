@@ -542,9 +542,12 @@ def test_a_vanished_robot_costs_the_vision_system_nothing(graph, request, tmp_pa
                     )
                     recoveries.append(back['received'] - up)
                 flow.stop()
+                # ~stats come at most every 0.5 s: wait until they account for every request
+                # and agree with the drops in the log (a late request may follow a snapshot).
                 done = wait_for(
                     lambda: (s := latest_stats())
                     and s['callbacks'] + s['callback_failures'] == s['requests'] - s['refused']
+                    and len(DROPPED.findall(vs1.log(tail=100000))) == s['callback_failures']
                     and s,
                     30,
                     'vs1 to call back or drop every request',
