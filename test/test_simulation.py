@@ -54,21 +54,29 @@ WORLD = {
 
 
 @pytest.fixture
-def simulation(tmp_path):
-    def make(walker=None, **robot):
-        data = yaml.safe_load(yaml.safe_dump(WORLD))
-        data['robot'].update(robot)
-        data['objects'][1].update(walker or {})
-        path = tmp_path / 'world.yaml'
-        path.write_text(yaml.safe_dump(data))
-        sim = Simulation(load_world(path))
-        made.append(sim)
-        return sim
-
+def simulations(tmp_path):
+    """``make(world, walker=None, **robot)``: a Simulation of a copy of ``world`` whose walker
+    and single robot take those keys; every one made is closed at the end."""
     made = []
+
+    def make(world, walker=None, **robot):
+        data = yaml.safe_load(yaml.safe_dump(world))
+        if robot:
+            data['robot'].update(robot)
+        data['objects'][1].update(walker or {})
+        path = tmp_path / f'world{len(made)}.yaml'
+        path.write_text(yaml.safe_dump(data))
+        made.append(Simulation(load_world(path)))
+        return made[-1]
+
     yield make
     for sim in made:
         sim.scene.close()
+
+
+@pytest.fixture
+def simulation(simulations):
+    return lambda walker=None, **robot: simulations(WORLD, walker, **robot)
 
 
 def run(sim, seconds, dt=0.05):
@@ -211,20 +219,8 @@ FLEET = {
 
 
 @pytest.fixture
-def fleet(tmp_path):
-    def make(walker=None):
-        data = yaml.safe_load(yaml.safe_dump(FLEET))
-        data['objects'][1].update(walker or {})
-        path = tmp_path / 'fleet.yaml'
-        path.write_text(yaml.safe_dump(data))
-        sim = Simulation(load_world(path))
-        made.append(sim)
-        return sim
-
-    made = []
-    yield make
-    for sim in made:
-        sim.scene.close()
+def fleet(simulations):
+    return lambda walker=None: simulations(FLEET, walker)
 
 
 def test_every_robot_is_driven_by_its_own_command_at_its_own_speed(fleet):
