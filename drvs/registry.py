@@ -31,12 +31,14 @@ else can see it half gone.
 :meth:`Registry.match` is the paper's Algorithm 1: the vision systems whose
 field of view meets the region of interest, through a spatial index
 (:mod:`drvs.spatial_index`; touching edges do not count), narrowed to those that
-run the request's algorithm; :meth:`Registry.available_algorithms` tells a
+run the request's algorithm. The index answers the entries themselves (the
+registry keeps each one's current entry there, under its lock), so a match
+looks nothing up again. :meth:`Registry.available_algorithms` tells a
 request for an algorithm nobody runs from one that nobody covering its region
 runs. No ROS here: the server
 (:mod:`drvs.ros.server`) checks who may register what and does the forwarding.
 
->>> registry = Registry(index=FieldOfViewIndex(background=False))
+>>> registry = Registry()
 >>> registry.register('/vs1', [(0, 0), (2, 0), (2, 2)], algorithms=['colour', 'sift'])
 'registered'
 >>> registry.match((0.5, 0.2, 1.0, 0.4), 'sift'), registry.match((0.5, 0.2, 1.0, 0.4), 'motion')
@@ -60,7 +62,7 @@ from drvs.algorithms import BUILTIN_NAMES
 from drvs.algorithms.base import NAME_PATTERN
 from drvs.spatial_index import FieldOfViewIndex
 from drvs.status import UNAVAILABLE, Refusal
-from drvs.validation import ValidationError, field_of_view_polygon, region_geometry, region_of_interest
+from drvs.validation import ValidationError, field_of_view_polygon, region_of_interest
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -79,6 +81,7 @@ MAX_ALGORITHMS = 64
 """Most algorithm names one registration may declare."""
 MAX_ALGORITHM_NAME = 64
 """Longest algorithm name, in characters."""
+_BUILTINS = frozenset(BUILTIN_NAMES)  # one set shared by every registration that runs the built-ins
 
 
 def algorithm_names(names: Sequence[str]) -> frozenset[str]:
@@ -98,7 +101,7 @@ def algorithm_names(names: Sequence[str]) -> frozenset[str]:
     if len(names) > MAX_ALGORITHMS:
         raise ValidationError(f'algorithms: {len(names)} names, more than the limit of {MAX_ALGORITHMS}')
     if len(names) == 0:
-        return frozenset(BUILTIN_NAMES)
+        return _BUILTINS
     for index, name in enumerate(names):
         if not isinstance(name, str):
             raise ValidationError(f'algorithms[{index}]: expected a string, got {type(name).__name__}')
@@ -114,7 +117,7 @@ def algorithm_names(names: Sequence[str]) -> frozenset[str]:
     return frozenset(names)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Registration:
     """One vision system's entry."""
 
@@ -124,7 +127,7 @@ class Registration:
     expires_at: float  # on the registry's clock
     provider: str = ''  # caller id of the node that registered it
     instance: str = ''  # which process serves it (the server uses its rosrpc URI)
-    algorithms: frozenset[str] = frozenset(BUILTIN_NAMES)  # the algorithm names it runs
+    algorithms: frozenset[str] = _BUILTINS  # the algorithm names it runs
     client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
     watch_service: bool = False  # it serves drvs/WatchObjectBoundary too (:mod:`drvs.watches`)
 
@@ -137,7 +140,7 @@ class Registry:
     :param ejection_time: seconds an ejected vision system is refused, times its ejection count.
     :param max_ejection_time: cap on one ejection, seconds.
     :param clock: monotonic seconds (injectable for tests).
-    :param index: the spatial index (default: a background-rebuilding one).
+    :param index: the spatial index (default: a new :class:`~drvs.spatial_index.FieldOfViewIndex`).
     """
 
     def __init__(
@@ -224,7 +227,7 @@ class Registry:
             return UNREGISTERED if removed is not None else NOT_REGISTERED
         polygon = field_of_view_polygon(field_of_view)
         names = algorithm_names(algorithms)
-        points = tuple((float(p[0]), float(p[1])) for p in field_of_view)
+        points = tuple([(float(p[0]), float(p[1])) for p in field_of_view])
         with self._lock:
             now = self.clock()
             self._refuse_if_ejected(service_name, instance, now)
@@ -240,7 +243,7 @@ class Registry:
             else:
                 polygon = old.polygon
                 change = RENEWED if old.algorithms == names else CHANGED
-            self._entries[service_name] = Registration(
+            entry = self._entries[service_name] = Registration(
                 service_name,
                 points,
                 polygon,
@@ -252,7 +255,9 @@ class Registry:
                 watch_service=watch_service,
             )
             if moved:
-                self._index.insert(service_name, polygon)
+                self._index.insert(service_name, polygon, points, value=entry)
+            else:
+                self._index.set_value(service_name, entry)  # a match answers the entries it finds
             if change != RENEWED:
                 self.version += 1
                 self._failures[service_name] = 0
@@ -308,18 +313,13 @@ class Registry:
         those that run it. Sorted by name. Expired entries never match, even before
         :meth:`expire` removes them.
         """
-        geometry = region_geometry(region_of_interest(region))
-        keys = self._index.query(geometry)
+        found = self._index.query_box(region_of_interest(region))  # the entries, current when found
         now = self.clock()
-        with self._lock:
-            live = [
-                key
-                for key in keys
-                if (entry := self._entries.get(key))
-                and entry.expires_at > now
-                and (algorithm is None or algorithm in entry.algorithms)
-            ]
-        return sorted(live)
+        return sorted(
+            entry.service_name
+            for entry in found
+            if entry.expires_at > now and (algorithm is None or algorithm in entry.algorithms)
+        )
 
     def available_algorithms(self) -> list[str]:
         """The algorithm names that at least one live vision system runs, sorted."""

@@ -63,13 +63,17 @@ def field_of_view_polygon(points: Sequence[Sequence[float]]) -> Polygon:
     if len(points) < 3:
         raise ValidationError(f'field_of_view: {len(points)} vertices; a polygon needs at least 3')
     for index, (x, y) in enumerate(points):
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValidationError(f'field_of_view: vertex {index} is ({x}, {y}); coordinates must be finite')
-        if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:
+        if not (-MAX_COORDINATE <= x <= MAX_COORDINATE and -MAX_COORDINATE <= y <= MAX_COORDINATE):
+            if not (math.isfinite(x) and math.isfinite(y)):
+                raise ValidationError(
+                    f'field_of_view: vertex {index} is ({x}, {y}); coordinates must be finite'
+                )
             raise ValidationError(f'field_of_view: vertex {index} is ({x}, {y}); {_WITHIN}')
+    polygon = Polygon(points)
+    if polygon.is_valid and polygon.area > 0.0:
+        return polygon  # the common case, without the convex hull (most of the time of this check)
     if MultiPoint(points).convex_hull.area == 0.0:
         raise ValidationError('field_of_view: zero area (all vertices lie on one line)')
-    polygon = Polygon(points)
     if not polygon.is_valid:
         reason = explain_validity(polygon)
         where = reason.partition('[')[2].rstrip(']').split()
@@ -90,7 +94,14 @@ def region_of_interest(box: Sequence[float]) -> tuple[float, float, float, float
 
     A region of zero width or height (a segment or a point) is allowed.
     """
-    values = tuple(float(v) for v in box)
+    values = tuple([float(v) for v in box])
+    if len(values) == 4:  # the common case in one test (every match starts here); the details below
+        min_x, min_y, max_x, max_y = values
+        if (
+            -MAX_COORDINATE <= min_x <= max_x <= MAX_COORDINATE
+            and -MAX_COORDINATE <= min_y <= max_y <= MAX_COORDINATE
+        ):
+            return values
     if len(values) != len(_BOX_FIELDS):
         raise ValidationError(
             f'region_of_interest: {len(values)} values; expected 4 (min_x, min_y, max_x, max_y)'

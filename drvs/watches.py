@@ -42,9 +42,8 @@ No ROS here; the clock is injected (the server passes ROS time, so watches follo
 ``/clock`` in simulation). Not thread-safe: the server calls it under one lock,
 which also keeps the forwards to each vision system in the order they were made.
 
->>> from drvs.spatial_index import FieldOfViewIndex
 >>> from drvs.testing import ManualClock
->>> registry = Registry(index=FieldOfViewIndex(background=False))
+>>> registry = Registry()
 >>> registry.register('/vs1/detect_object_boundary', [(0, 0), (2, 0), (2, 2)], watch_service=True)
 'registered'
 >>> clock = ManualClock(100.0)

@@ -26,7 +26,7 @@ def clock():
 
 @pytest.fixture
 def registry(clock):
-    return Registry(lease=10.0, max_failures=3, clock=clock, index=FieldOfViewIndex(background=False))
+    return Registry(lease=10.0, max_failures=3, clock=clock)
 
 
 def test_register_move_renew_unregister(registry):
@@ -139,7 +139,6 @@ def test_ejection_grows_with_each_ejection_up_to_the_cap(clock):
         lease=10.0,
         max_failures=1,
         clock=clock,
-        index=FieldOfViewIndex(background=False),
         ejection_time=10.0,
         max_ejection_time=25.0,
     )
@@ -192,8 +191,8 @@ def test_bad_settings(lease, max_failures, message):
     assert str(caught.value) == message
 
 
-def test_many_moves_across_rebuilds_route_correctly(clock):
-    index = FieldOfViewIndex(background=False, min_rebuild=8, max_rebuild=8)
+def test_many_moves_route_correctly(clock):
+    index = FieldOfViewIndex()
     registry = Registry(lease=10.0, clock=clock, index=index)
     for step in range(5):
         for n in range(40):
@@ -203,21 +202,28 @@ def test_many_moves_across_rebuilds_route_correctly(clock):
         expected = sorted(f'/c{n}' for n in range(40) if n % 7)
         assert registry.match((step * 100 - 1, -1, step * 100 + 100, 2)) == expected
         assert registry.match((step * 100 - 50, -1, step * 100 - 2, 2)) == []
-    assert index.rebuilds > 5
+    assert len(index) == len(registry) == 34
 
 
-def test_background_rebuild_keeps_changes_made_during_it():
-    index = FieldOfViewIndex(background=True, min_rebuild=16, max_rebuild=16)
-    registry = Registry(lease=60.0, index=index)
+def test_a_move_is_seen_by_the_next_match():
+    """No rebuild, nothing in the background: every change routes at once."""
+    registry = Registry(lease=60.0)
     for n in range(500):
         registry.register(f'/c{n}', square(n, 0, 0.5))
-    index.wait_for_rebuild(30)
     for n in range(500):
         registry.register(f'/c{n}', square(n, 10, 0.5))
-    index.wait_for_rebuild(30)
-    index.rebuild_now()
+        assert registry.match((n, 10, n + 0.5, 10.5)) == [f'/c{n}']
+        assert registry.match((n, 0, n + 0.5, 0.5)) == []
     assert registry.match((-1, -1, 600, 1)) == []
     assert len(registry.match((-1, 9, 600, 11))) == 500
+
+
+def test_registration_keeps_the_outline_as_sent(registry):
+    """A closing vertex repeated at the end, or a clockwise outline: the same field of view."""
+    registry.register('/cw', [(0, 0), (0, 1), (1, 1), (1, 0), (0, 0)])
+    assert registry.get('/cw').field_of_view == ((0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, 0.0), (0.0, 0.0))
+    assert registry.match((0.5, 0.5, 2, 2)) == ['/cw']
+    assert registry.match((1, 0, 2, 1)) == []
 
 
 # -- algorithms ---------------------------------------------------------------------------------

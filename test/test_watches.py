@@ -7,7 +7,6 @@ import pytest
 import drvs.watches
 from drvs.dispatch import Busy
 from drvs.registry import Registry
-from drvs.spatial_index import FieldOfViewIndex
 from drvs.testing import ManualClock
 from drvs.validation import ValidationError
 from drvs.watches import (
@@ -49,7 +48,7 @@ def clock():
 
 @pytest.fixture
 def registry(clock):
-    return Registry(lease=1000.0, clock=clock, index=FieldOfViewIndex(background=False))
+    return Registry(lease=1000.0, clock=clock)
 
 
 @pytest.fixture
