@@ -5,23 +5,23 @@ tokens that refills at ``rate`` tokens per second; a request takes one token
 or is refused with the seconds until one will be there, which the server
 returns as its ``retry_after`` hint (see :func:`drvs.retry.retry_delay`).
 
-Memory stays bounded however many callers come and go: the buckets live in a
-``cachetools.TTLCache`` with ``ttl = burst / rate`` and ``maxsize = max_keys``.
-A bucket untouched for ``burst / rate`` seconds would be full again anyway,
-so forgetting it loses nothing; beyond ``max_keys`` the least recently used
-key is forgotten, which at worst hands that caller a fresh full bucket.
+Memory stays bounded however many callers come and go: a bucket not served
+for ``ttl = burst / rate`` seconds would be full again anyway, so it is
+forgotten; beyond ``max_keys`` the least recently used key is forgotten, which
+at worst hands that caller a fresh full bucket. The buckets live in one
+``OrderedDict`` in order of use, so both kinds of forgetting take from its
+front. (Not ``cachetools.TTLCache``: the DRVS server calls :meth:`RateLimiter.take`
+for every request, and a TTLCache read and write cost it several microseconds.)
 
-No ROS here. Thread-safe: one lock, ``RateLimiter._lock``, guards the buckets
-(``TTLCache`` itself is not thread-safe).
+No ROS here. Thread-safe: one lock, ``RateLimiter._lock``, guards the buckets.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
-
-from cachetools import TTLCache
 
 __all__ = ['RateLimiter']
 
@@ -56,15 +56,18 @@ class RateLimiter:
         self.burst = float(burst)
         self.clock = clock
         self.max_keys = int(max_keys)
+        self.ttl = self.burst / self.rate
         self._lock = threading.Lock()
-        # key -> (tokens, time they were counted); the TTL runs from the last write.
-        self._buckets: TTLCache = TTLCache(maxsize=self.max_keys, ttl=self.burst / self.rate, timer=clock)
+        # key -> (tokens, time they were counted), least recently used first. A bucket counted
+        # ttl seconds ago or more is full again: it is as good as absent (forgotten when met).
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
         self.refused = 0  # requests refused since construction
 
     def __len__(self) -> int:
-        """Keys tracked now (expired ones not counted)."""
+        """Keys tracked now (those full again by now not counted)."""
         with self._lock:
-            return len(self._buckets)
+            now = self.clock()
+            return sum(1 for _, at in self._buckets.values() if now - at < self.ttl)
 
     def limited(self) -> int:
         """How many keys would be refused now: those with less than one token left."""
@@ -73,7 +76,7 @@ class RateLimiter:
             return sum(
                 1
                 for counted, at in self._buckets.values()
-                if counted + max(0.0, now - at) * self.rate < 1 - _ROUNDING
+                if now - at < self.ttl and counted + max(0.0, now - at) * self.rate < 1 - _ROUNDING
             )
 
     def take(self, key: str) -> float:
@@ -84,16 +87,29 @@ class RateLimiter:
         """
         with self._lock:
             now = self.clock()
-            bucket = self._buckets.get(key)
-            if bucket is None:
+            buckets = self._buckets
+            bucket = buckets.get(key)
+            if bucket is None or now - bucket[1] >= self.ttl:
                 tokens = self.burst
             else:
                 counted, at = bucket
                 tokens = min(self.burst, counted + max(0.0, now - at) * self.rate)
             if tokens >= 1 - _ROUNDING:
-                # A write restarts the TTL: from here the bucket is full again
-                # after at most burst / rate seconds, exactly when it expires.
-                self._buckets[key] = (max(0.0, tokens - 1), now)
+                # From here the bucket is full again after at most burst / rate seconds.
+                buckets[key] = (max(0.0, tokens - 1), now)
+                buckets.move_to_end(key)
+                self._forget(now)
                 return 0.0
+            buckets.move_to_end(key)
             self.refused += 1
             return (1 - tokens) / self.rate
+
+    def _forget(self, now: float) -> None:
+        """Called with the lock held: drop the least recently used buckets that are full again
+        by now, and any beyond ``max_keys``."""
+        buckets = self._buckets
+        while buckets:
+            key, (_, at) = next(iter(buckets.items()))
+            if now - at < self.ttl and len(buckets) <= self.max_keys:
+                return
+            del buckets[key]

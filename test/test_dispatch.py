@@ -81,3 +81,74 @@ def test_an_exception_in_send_is_logged_and_the_worker_goes_on(pool, caplog):
     dispatcher.submit(['a'], 'next')
     wait_for(lambda: seen == ['boom', 'next'], 10, 'both items')
     assert 'sending to a failed unexpectedly' in caplog.text
+
+
+class Begin:
+    """A ``begin`` that starts items on the calling thread and ends them when the test says."""
+
+    def __init__(self, refuse=()):
+        self.begun = []  # (destination, item, thread name)
+        self.done = {}  # destination -> its done() for the item in flight
+        self.refuse = set(refuse)  # items left to the workers
+        self.lock = threading.Lock()
+
+    def __call__(self, destination, item, done):
+        if item in self.refuse:
+            return False
+        with self.lock:
+            self.begun.append((destination, item, threading.current_thread().name))
+            self.done[destination] = done
+        return True
+
+    def end(self, destination):
+        with self.lock:
+            done = self.done.pop(destination)
+        done()
+
+
+def test_held_items_start_on_the_releasing_thread_and_follow_on_the_finishing_one(pool):
+    send, begin = Recorder(), Begin()
+    dispatcher = pool(send, workers=2, begin=begin)
+    assert dispatcher.submit(['a', 'b'], 0, wake=False) == (['a', 'b'], [])
+    assert dispatcher.submit(['a'], 1, wake=False) == (
+        ['a'],
+        [],
+    )  # queued behind 0: one in flight per destination
+    here = threading.current_thread().name
+    dispatcher.release(3)
+    assert begin.begun == [('a', 0, here), ('b', 0, here)]
+    assert dispatcher.pending == 3
+    finisher = threading.Thread(target=begin.end, args=('a',), name='finisher')
+    finisher.start()
+    finisher.join()
+    assert begin.begun[-1] == ('a', 1, 'finisher')  # the next item of a, started where 0 ended
+    begin.end('a')
+    begin.end('b')
+    assert dispatcher.pending == 0
+    assert send.sent == []  # no worker was needed
+
+
+def test_what_begin_cannot_start_goes_to_a_worker_in_order(pool):
+    send, begin = Recorder(), Begin(refuse={'connect'})
+    dispatcher = pool(send, workers=1, begin=begin)
+    dispatcher.submit(['a'], 'connect', wake=False)
+    dispatcher.submit(['a'], 'then', wake=False)
+    dispatcher.release(1)
+    wait_for(lambda: begin.begun and begin.begun[0][:2] == ('a', 'then'), 10, 'the second item begun')
+    assert send.sent == [('a', 'connect')]  # sent (blocking) by the worker, before the next one
+    assert begin.begun[0][2] == 'dispatch-0'  # which went on to start the next one itself
+    begin.end('a')
+    assert dispatcher.pending == 0
+
+
+def test_an_exception_in_begin_is_logged_and_the_item_counts_as_sent(pool, caplog):
+    def begin(destination, item, done):
+        raise RuntimeError('boom')
+
+    send = Recorder()
+    dispatcher = pool(send, workers=1, begin=begin)
+    dispatcher.submit(['a'], 'boom', wake=False)
+    dispatcher.release(1)
+    assert dispatcher.pending == 0
+    assert 'sending to a failed unexpectedly' in caplog.text
+    assert send.sent == []

@@ -308,3 +308,11 @@ def test_clean_exit_on_sigint(ros, make_graph):
     graph.camera('vs1', square(0, 0, 2, 2))
     assert graph.detect((0, 0, 1, 1)).vision_systems == 1
     assert graph.server.interrupt() == 0
+
+
+def test_doctests():
+    import doctest
+
+    import drvs.ros.server
+
+    assert doctest.testmod(drvs.ros.server).failed == 0

@@ -1,11 +1,13 @@
 """ServiceClient and probe_service against live services on a private master."""
 
+import os
+import signal
 import threading
 
 import pytest
 
 from drvs.msg import BoundingBox
-from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
+from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient, probe_service
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import wait_for
 
@@ -157,3 +159,96 @@ def test_probe_service_reports_type_and_provider(ros):
 def test_constructor_refuses_a_non_positive_timeout():
     with pytest.raises(ValueError, match='^timeout: must be positive, got 0$'):
         ServiceClient('/x', DetectObjectBoundary, 0)
+
+
+class Outcomes:
+    """``done`` callbacks of :meth:`ServiceClient.start`: what each call ended with, and on which thread."""
+
+    def __init__(self):
+        self.ended = []
+        self.lock = threading.Lock()
+
+    def done(self, request_id):
+        def done(response, error):
+            with self.lock:
+                self.ended.append((request_id, response, error, threading.current_thread().name))
+
+        return done
+
+
+@pytest.fixture
+def replies():
+    loop = ReplyLoop('test-replies')
+    loop.start()
+    yield loop
+    loop.stop()
+
+
+def test_start_sends_on_an_open_connection_and_the_loop_hands_over_the_reply(ros, replies):
+    start_echo(ros)
+    client = ServiceClient(
+        '/echo/detect_object_boundary', DetectObjectBoundary, 5.0, master_uri=ros.master.uri
+    )
+    outcomes = Outcomes()
+    try:
+        assert not client.start(request('early'), replies, outcomes.done('early'))  # no connection yet
+        client.call(request('opens'))
+        for index in range(3):
+            assert client.start(request(f's{index}'), replies, outcomes.done(f's{index}'))
+            wait_for(lambda index=index: len(outcomes.ended) == index + 1, 10, f'the reply to s{index}')
+        assert [(i, r.message.split('|')[1], e, t) for i, r, e, t in outcomes.ended] == [
+            (f's{index}', f's{index}', None, 'test-replies') for index in range(3)
+        ]
+        assert client.connections == 1
+        assert client.call(request('after')).message.split('|')[1] == 'after'  # the lock was given back
+    finally:
+        client.close()
+
+
+def test_start_times_out_like_call_and_the_next_call_reconnects(ros, replies):
+    node = start_echo(ros)
+    client = ServiceClient(
+        '/echo/detect_object_boundary', DetectObjectBoundary, 0.5, master_uri=ros.master.uri
+    )
+    outcomes = Outcomes()
+    try:
+        client.call(request('opens'))
+        os.kill(node.pid, signal.SIGSTOP)  # the service hangs
+        try:
+            assert client.start(request('hung'), replies, outcomes.done('hung'))
+            wait_for(lambda: outcomes.ended, 10, 'the timeout')
+        finally:
+            os.kill(node.pid, signal.SIGCONT)
+        ((request_id, response, error, thread),) = outcomes.ended
+        assert (request_id, response, thread) == ('hung', None, 'test-replies')
+        assert (
+            str(error) == 'service /echo/detect_object_boundary: timed out after 0.5 s waiting for the reply'
+        )
+        assert client.call(request('again')).message.split('|')[1] == 'again'
+        assert client.connections == 2  # the timed-out connection was dropped
+    finally:
+        client.close()
+
+
+def test_stopping_the_loop_ends_the_calls_in_flight(ros):
+    node = start_echo(ros)
+    loop = ReplyLoop('test-replies')
+    loop.start()
+    client = ServiceClient(
+        '/echo/detect_object_boundary', DetectObjectBoundary, 30.0, master_uri=ros.master.uri
+    )
+    outcomes = Outcomes()
+    try:
+        client.call(request('opens'))
+        os.kill(node.pid, signal.SIGSTOP)
+        try:
+            assert client.start(request('hung'), loop, outcomes.done('hung'))
+            loop.stop()
+        finally:
+            os.kill(node.pid, signal.SIGCONT)
+        assert [(i, r, str(e)) for i, r, e, _ in outcomes.ended] == [
+            ('hung', None, 'service /echo/detect_object_boundary: shutting down')
+        ]
+        assert not client.start(request('late'), loop, outcomes.done('late'))  # a stopped loop takes none
+    finally:
+        client.close()

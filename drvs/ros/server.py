@@ -30,13 +30,18 @@ algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
   be: the request is accepted and sent to none, as for a robot started before
   the cameras.) Then it is matched against the registry — the vision systems
   whose field of view meets the region *and* that run the algorithm —, queued
-  for each of them, and acknowledged at once with ``vision_systems`` set.
-  Forwards carry every field unchanged; they run on a bounded pool of workers,
-  one persistent connection per vision system (:class:`ServiceClient`, re-created
-  after a failure), each call limited to ``~forward_timeout``. ``BUSY`` when the
-  pool is full; ``UNAVAILABLE`` when the master does not answer, or does not list
-  a callback service that it listed within ``~callback_memory`` seconds (a
-  restarted master, before the robot registered again).
+  for each of them, and acknowledged at once with ``vision_systems`` set: the
+  forwards start once the acknowledgement is written (:class:`ReplyFirstService`).
+  Forwards carry every field unchanged, one at a time per vision system over one
+  persistent connection (:class:`ServiceClient`, re-created after a failure), each
+  call limited to ``~forward_timeout``. On an open connection a forward is sent
+  by the thread at hand (the request's, after its acknowledgement, or the one that
+  saw the previous forward to that vision system end) and one thread, the reply
+  loop (:class:`ReplyLoop`), waits for every reply; connecting (and watch
+  forwards) is left to a bounded pool of workers (:class:`drvs.dispatch.Dispatcher`).
+  ``BUSY`` when the pool is full; ``UNAVAILABLE`` when the master does not answer,
+  or does not list a callback service that it listed within ``~callback_memory``
+  seconds (a restarted master, before the robot registered again).
 - ``~watch_object_boundary`` (drvs/WatchObjectBoundary): a robot's standing
   request (a *watch*, :mod:`drvs.watches`), keyed by its caller id and
   ``request_id``. ``INVALID``: ``request_id`` empty or too long, ``duration`` not
@@ -94,18 +99,24 @@ with exit code 1. The watch loop follows every change of the registry and runs
 the watches' expiries and one-shots on ROS time. Logs: info for register (with
 the algorithms and whether it serves watches), move, change of algorithms,
 unregister, expiry, removal and ejection, for every refused request and watch
-call, and for each new, cancelled or expired watch; debug per forward.
+call — but those refused ``BUSY`` or ``RATE_LIMITED``, and requests that skipped busy
+vision systems, at most once per ``LOG_PERIOD`` seconds each, with the number not
+logged since: a log line costs more than a request, and a saturated server refuses
+thousands a second —, and for each new, cancelled or expired watch; debug per forward.
 """
 
 from __future__ import annotations
 
+import io
+import logging
+import math
 import socket
 import threading
 import time
 import traceback
+from collections import OrderedDict
 from dataclasses import dataclass
 
-import cachetools
 import rosgraph.names
 import rospy
 from visualization_msgs.msg import MarkerArray
@@ -135,6 +146,7 @@ from drvs.ros.markers import registry_markers
 from drvs.ros.messages import header, registry_to_msg
 from drvs.ros.service_client import (
     MasterUnreachable,
+    ReplyLoop,
     ServiceCallError,
     ServiceClient,
     ServiceInfo,
@@ -153,7 +165,7 @@ from drvs.srv import (
     WatchObjectBoundaryRequest,
     WatchObjectBoundaryResponse,
 )
-from drvs.status import ACCEPTED, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
+from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
 from drvs.validation import (
     ValidationError,
     field_of_view_polygon,
@@ -176,6 +188,10 @@ __all__ = ['ServerSettings', 'DrvsServer']
 
 MAX_CALLBACKS_REMEMBERED = 10_000
 """Verified callback services kept; callers choose the names, so the memory is capped."""
+MAX_REPLIES_KEPT = 4096
+"""Acknowledgements kept for reuse, one per (vision systems forwarded to, skipped)."""
+MAX_ALGORITHMS_REMEMBERED = 1024
+"""Algorithm strings remembered as valid (with their NAME); callers choose them, so capped."""
 MAX_WATCH_CLIENTS = 4096
 """Connections to vision systems' watch services kept open (one per vision system)."""
 WATCH_CLIENT_IDLE = 120.0
@@ -184,6 +200,10 @@ WATCH_WAIT = 0.5
 """Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""
 STATS_PERIOD = 1.0
 """Seconds between two ``~stats`` messages at most."""
+LOG_PERIOD = 1.0
+"""Seconds between two log lines about requests refused for load (or that skipped busy vision systems)."""
+THROTTLED = (BUSY, RATE_LIMITED)
+"""Refusals for load: logged at most once per ``LOG_PERIOD`` (per kind of call)."""
 STATS_FIELDS = (
     'requests',
     'watch_requests',
@@ -266,6 +286,59 @@ def _caller(request) -> str:
     return request._connection_header.get('callerid', '')
 
 
+class LogThrottle:
+    """At most one log line per kind of event and ``period`` seconds, and how many were not logged.
+
+    >>> clock = iter([0.0, 0.5, 0.7, 1.2]).__next__
+    >>> throttle = LogThrottle(1.0, clock)
+    >>> [throttle.allow('BUSY') for _ in range(4)]
+    [0, None, None, 2]
+    """
+
+    def __init__(self, period: float, clock=time.monotonic):
+        self.period = period
+        self.clock = clock
+        self._lock = threading.Lock()  # guards _next and _unlogged
+        self._next: dict[object, float] = {}  # kind -> when the next line may be logged
+        self._unlogged: dict[object, int] = {}  # kind -> events not logged since the last line
+
+    def allow(self, kind) -> int | None:
+        """None: do not log this event (it is counted); else log it, with this many not logged before."""
+        with self._lock:
+            now = self.clock()
+            if now < self._next.get(kind, -math.inf):
+                self._unlogged[kind] = self._unlogged.get(kind, 0) + 1
+                return None
+            self._next[kind] = now + self.period
+            return self._unlogged.pop(kind, 0)
+
+
+def _not_logged(count: int) -> str:
+    return f' ({count} more like it not logged in the last {LOG_PERIOD:g} s)' if count else ''
+
+
+class ReplyFirstService(rospy.Service):
+    """A ``rospy.Service`` that calls ``after_reply()`` once each reply is written.
+
+    rospy writes a handler's reply when the handler returns. Work the handler starts
+    at once (the server's forwards) would compete with that write for the
+    interpreter, and the caller would wait longer for its acknowledgement; so the
+    handler only queues, and ``after_reply``, run on the same thread once the reply
+    is out (or failed), sends. This overrides ``ServiceImpl._handle_request``,
+    rospy's per-request step (ROS 1 Noetic's rospy, the last ROS 1 release).
+    """
+
+    def __init__(self, name: str, service_class, handler, after_reply):
+        self._after_reply = after_reply  # before rospy.Service registers: a call may come at once
+        super().__init__(name, service_class, handler)
+
+    def _handle_request(self, transport, request) -> None:
+        try:
+            super()._handle_request(transport, request)
+        finally:
+            self._after_reply()
+
+
 class DrvsServer:
     """The server's ROS glue; :meth:`start` creates the services, topic and threads."""
 
@@ -283,15 +356,19 @@ class DrvsServer:
             max_pending=settings.max_pending,
             max_per_destination=settings.max_pending_per_vision_system,
             retry_after=settings.busy_retry_after,
+            begin=self._begin_forward,
         )
+        self.replies = ReplyLoop('forward-replies')  # waits for the replies of forwards in flight
         self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
         self._stopping = threading.Event()
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
         self._lock = threading.Lock()  # guards _callbacks
-        # Verified callback service -> when verified; bounded in size and age.
-        self._callbacks = cachetools.TTLCache(
-            maxsize=MAX_CALLBACKS_REMEMBERED, ttl=max(settings.callback_memory, settings.callback_cache, 1e-3)
-        )
+        # Verified callback service -> when verified (time.monotonic()), oldest first; bounded in size
+        # and age (_remembered). Not a cachetools.TTLCache: every request looks here, and its reads
+        # cost more than the rest of the check.
+        self._callbacks: OrderedDict[str, float] = OrderedDict()
+        self._remembered = max(settings.callback_memory, settings.callback_cache, 1e-3)
+        self._replies: dict[tuple[int, int], DetectObjectBoundaryResponse] = {}  # see _accepted()
         self._changed = threading.Condition()
         self._dirty = True
         self._registry_publisher = None
@@ -308,6 +385,9 @@ class DrvsServer:
         self._watch_clients = ClosingCache(self._make_watch_client, MAX_WATCH_CLIENTS, WATCH_CLIENT_IDLE)
         self._stats_lock = threading.Lock()  # guards stats
         self.stats = dict.fromkeys(STATS_FIELDS, 0)
+        self._held = threading.local()  # .forwards: queued by this thread's handler, not sent yet
+        self._algorithm_names: dict[str, str] = {}  # valid algorithm string -> its NAME
+        self._log_throttle = LogThrottle(LOG_PERIOD)
         self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
         self.refusals = PeriodCounts()  # refusals by status name, for the health report
         self.diagnostics = DiagnosticsPublisher(
@@ -320,13 +400,16 @@ class DrvsServer:
         self._registry_publisher = rospy.Publisher('~registry', RegistryMsg, queue_size=1, latch=True)
         self._markers_publisher = rospy.Publisher('~markers', MarkerArray, queue_size=1, latch=True)
         self._stats_publisher = rospy.Publisher('~stats', ServerStats, queue_size=1, latch=True)
+        self.replies.start()
         self.dispatcher.start()
         self.guard.spawn(self._expire_loop, 'lease-expiry', RESTART)
         self.guard.spawn(self._publish_loop, 'registry-publisher', RESTART)
         self.guard.spawn(self._watch_loop, 'watches', RESTART)
         self.guard.spawn(self._stats_loop, 'stats-publisher', RESTART)
         rospy.Service('~register_vision_service', RegisterVisionService, self.handle_register)
-        rospy.Service('~detect_object_boundary', DetectObjectBoundary, self.handle_detect)
+        ReplyFirstService(
+            '~detect_object_boundary', DetectObjectBoundary, self.handle_detect, self._release_forwards
+        )
         rospy.Service('~watch_object_boundary', WatchObjectBoundary, self.handle_watch)
         self.diagnostics.start()
         rospy.loginfo(
@@ -351,6 +434,7 @@ class DrvsServer:
         with self._changed:
             self._changed.notify_all()
         self.dispatcher.stop(timeout=self.settings.forward_timeout + 1.0)
+        self.replies.stop(timeout=self.settings.forward_timeout + 1.0)
         for entry in self.registry.entries():
             self._close(self.registry.unregister(entry.service_name))
         self._watch_clients.clear()
@@ -390,13 +474,19 @@ class DrvsServer:
     def _log_refusal(self, what: str, request, refusal: Refusal) -> None:
         self.refusals.add(name(refusal.status))
         self._count(refused=1)
+        unlogged = 0
+        if refusal.status in THROTTLED:  # a saturated server refuses thousands a second
+            unlogged = self._log_throttle.allow((what, refusal.status))
+            if unlogged is None:
+                return
         rospy.loginfo(
-            '%s %r from %s refused (%s): %s',
+            '%s %r from %s refused (%s): %s%s',
             what,
             request.request_id,
             _caller(request) or '?',
             name(refusal.status),
             refusal.message,
+            _not_logged(unlogged),
         )
 
     # -- registration ------------------------------------------------------------------------
@@ -597,27 +687,47 @@ class DrvsServer:
         names = self.registry.match(region, algorithm)
         if not names:
             return self._sent_to_none(region, algorithm)
-        forward = DetectObjectBoundaryRequest(
-            algorithm=request.algorithm,
-            region_of_interest=request.region_of_interest,
-            callback_service=request.callback_service,
-            request_id=request.request_id,
-        )
-        accepted, skipped = self.dispatcher.submit(names, forward)  # raises Busy, a Refusal
-        if skipped:
-            rospy.logwarn('request %s: skipped busy vision systems %s', request.request_id, skipped)
+        # The request itself is forwarded: every field unchanged (the caller's connection
+        # header is not part of the message). They are sent once the reply is out.
+        accepted, skipped = self.dispatcher.submit(names, Outgoing(request), wake=False)  # raises Busy
+        self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
+        if skipped and accepted and (unlogged := self._log_throttle.allow('skipped')) is not None:
+            rospy.logwarn(
+                'request %s: skipped busy vision systems %s%s',
+                request.request_id,
+                skipped,
+                _not_logged(unlogged),
+            )
         if not accepted:
             raise Busy(
                 f'busy: all {len(names)} vision systems that cover the region and run {algorithm!r} have '
                 f'{self.settings.max_pending_per_vision_system} forwards pending; try again later',
                 self.settings.busy_retry_after,
             )
-        message = f'forwarded to {len(accepted)} vision system{"s" if len(accepted) != 1 else ""}'
-        if skipped:
-            message += f'; {len(skipped)} busy vision system(s) skipped'
-        return DetectObjectBoundaryResponse(
-            accepted=True, status=ACCEPTED, message=message, vision_systems=len(accepted)
-        )
+        return self._accepted(len(accepted), len(skipped))
+
+    def _accepted(self, forwarded: int, skipped: int) -> DetectObjectBoundaryResponse:
+        """The acknowledgement of a request sent to ``forwarded`` vision systems (``skipped`` busy),
+        made once and shared: rospy only serialises a reply, and a new one costs more than the check
+        that made it."""
+        reply = self._replies.get((forwarded, skipped))
+        if reply is None:
+            message = f'forwarded to {forwarded} vision system{"s" if forwarded != 1 else ""}'
+            if skipped:
+                message += f'; {skipped} busy vision system(s) skipped'
+            reply = DetectObjectBoundaryResponse(
+                accepted=True, status=ACCEPTED, message=message, vision_systems=forwarded
+            )
+            if len(self._replies) < MAX_REPLIES_KEPT:
+                self._replies[(forwarded, skipped)] = reply
+        return reply
+
+    def _release_forwards(self) -> None:
+        """After a reply to ``~detect_object_boundary``: send its forwards."""
+        held = getattr(self._held, 'forwards', 0)
+        if held:
+            self._held.forwards = 0
+            self.dispatcher.release(held)
 
     def _request_fields(self, request) -> tuple[str, tuple[float, float, float, float]]:
         """The algorithm's NAME and the region of a request or watch, its callback name checked.
@@ -637,9 +747,15 @@ class DrvsServer:
 
         :raises AlgorithmError: bad syntax; PARAMS that a known algorithm refuses.
         """
+        known = self._algorithm_names.get(text)
+        if known is not None:
+            return known
         algorithm, _ = split_algorithm(text)
         if algorithm in self.algorithms:
             self.algorithms.parse(text)
+        if len(self._algorithm_names) >= MAX_ALGORITHMS_REMEMBERED:
+            self._algorithm_names.clear()
+        self._algorithm_names[text] = algorithm
         return algorithm
 
     def _sent_to_none(self, region, algorithm: str) -> DetectObjectBoundaryResponse:
@@ -751,6 +867,8 @@ class DrvsServer:
         now = time.monotonic()
         with self._lock:
             verified = self._callbacks.get(service)
+        if verified is not None and now - verified >= self._remembered:
+            verified = None  # forgotten
         if verified is not None and now - verified < self.settings.callback_cache:
             return
         try:
@@ -765,11 +883,41 @@ class DrvsServer:
                 ) from None
             raise
         with self._lock:
-            self._callbacks[service] = now
+            callbacks = self._callbacks
+            callbacks[service] = now
+            callbacks.move_to_end(service)
+            while callbacks and (
+                len(callbacks) > MAX_CALLBACKS_REMEMBERED
+                or now - next(iter(callbacks.values())) >= self._remembered
+            ):
+                callbacks.popitem(last=False)
 
-    # -- forwarding (worker threads) ---------------------------------------------------------
+    # -- forwarding -------------------------------------------------------------------------
+    def _begin_forward(self, destination: str, item, done) -> bool:
+        """Send a robot's request without waiting (the dispatcher's ``begin``, on whichever thread
+        has it: the handler's after its reply, or the one that saw the previous forward end); the
+        reply loop settles it. False for what a worker must do: watch forwards, one-shots, and a
+        request to a vision system without an open connection."""
+        if isinstance(item, Forward):
+            return False
+        entry = self.registry.get(destination)
+        if entry is None or entry.client is None:
+            return False  # removed while queued: the worker drops it
+        client, started = entry.client, time.monotonic()
+
+        def settled(answer, error) -> None:
+            self._settle(
+                destination, client, f'forward of {item.request.request_id!r}', started, answer, error
+            )
+            done()
+
+        if not client.start(item.request, self.replies, settled, serialized=item.serialized()):
+            return False
+        self._count(forwards=1)
+        return True
+
     def _forward(self, destination: str, item) -> None:
-        """Send one queued item: a robot's request, or a watch's :class:`Forward`."""
+        """Send one queued item on a worker, blocking: a robot's request, or a watch's :class:`Forward`."""
         if isinstance(item, Forward) and item.kind != ONE_SHOT:
             self._forward_watch(destination, item)
             return
@@ -782,7 +930,8 @@ class DrvsServer:
             self._call(destination, entry.client, one_shot_request(item.watch), what)
         else:
             self._count(forwards=1)
-            self._call(destination, entry.client, item, f'forward of {item.request_id!r}')
+            what = f'forward of {item.request.request_id!r}'
+            self._call(destination, entry.client, item.request, what, item.serialized())
 
     def _forward_watch(self, destination: str, forward: Forward) -> None:
         service = forward.vision_system
@@ -798,17 +947,24 @@ class DrvsServer:
         elif not answer.accepted:
             rospy.logwarn('%s refused by %s (%s): %s', what, destination, name(answer.status), answer.message)
 
-    def _call(self, service: str, client: ServiceClient, request, what: str):
-        """Send ``request`` through ``client``; its answer, or None when it failed.
+    def _call(self, service: str, client: ServiceClient, request, what: str, serialized: bytes | None = None):
+        """Send ``request`` (its bytes ``serialized`` if known) through ``client``, blocking; its answer,
+        or None when it failed (:meth:`_settle`)."""
+        started = time.monotonic()
+        try:
+            answer = client.call(request, serialized)
+        except ServiceCallError as error:
+            return self._settle(service, client, what, started, None, error)
+        return self._settle(service, client, what, started, answer, None)
+
+    def _settle(self, service: str, client: ServiceClient, what: str, started: float, answer, error):
+        """The outcome of a call to the vision system ``service``: ``answer``, or None after ``error``.
 
         A failure counts against the registered vision system ``service`` (and may remove
         and eject it, :meth:`Registry.record_failure`); a success clears its failures. A
         call to a vision system no longer registered (a withdrawal) counts for neither.
         """
-        started = time.monotonic()
-        try:
-            answer = client.call(request)
-        except ServiceCallError as error:
+        if error is not None:
             self._count(forward_failures=1)
             if service not in self.registry:
                 rospy.loginfo('%s to %s failed (no longer registered): %s', what, client.service, error)
@@ -828,14 +984,15 @@ class DrvsServer:
             return None
         if service in self.registry:
             self.registry.record_success(service)
-        rospy.logdebug(
-            '%s to %s in %.1f ms: status %s %s',
-            what,
-            client.service,
-            (time.monotonic() - started) * 1000,
-            name(answer.status),
-            answer.message,
-        )
+        if _debug_logged():
+            rospy.logdebug(
+                '%s to %s in %.1f ms: status %s %s',
+                what,
+                client.service,
+                (time.monotonic() - started) * 1000,
+                name(answer.status),
+                answer.message,
+            )
         return answer
 
     # -- background loops --------------------------------------------------------------------
@@ -922,6 +1079,29 @@ class DrvsServer:
     def registry_msg(self) -> RegistryMsg:
         """The registry now, with each lease's expiry in ROS time."""
         return registry_to_msg(self.registry.entries(), rospy.get_time(), self.registry.clock())
+
+
+class Outgoing:
+    """A robot's request on its way to the vision systems: serialised once, for all of them."""
+
+    __slots__ = ('request', '_data')
+
+    def __init__(self, request: DetectObjectBoundaryRequest):
+        self.request = request
+        self._data: bytes | None = None
+
+    def serialized(self) -> bytes:
+        """The request's bytes (two threads may make them at once: the same bytes)."""
+        if self._data is None:
+            buffer = io.BytesIO()
+            self.request.serialize(buffer)
+            self._data = buffer.getvalue()
+        return self._data
+
+
+def _debug_logged() -> bool:
+    """Whether a debug message would be logged (rospy formats and dispatches it before it knows)."""
+    return logging.getLogger('rosout').isEnabledFor(logging.DEBUG)
 
 
 def watch_service_of(service: str) -> str:

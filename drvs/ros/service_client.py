@@ -10,6 +10,16 @@ service costs at most ``timeout`` seconds and never blocks the caller forever.
 After any failure the connection is dropped and the next call builds a new one
 (looking the service up again, since its provider may have moved).
 
+A call need not hold a thread while it waits: :meth:`ServiceClient.start` sends
+the request on a connection already open and leaves the wait for the reply to a
+:class:`ReplyLoop`, one thread that polls the sockets of every call in flight
+and hands each reply (or failure: the same errors, the same deadline) to a
+callback. The DRVS server forwards this way: a thread per call in flight, each
+waking up for its reply and fighting the others for the interpreter lock, cost
+it more than the calls themselves. Sockets are non-blocking and every wait is
+one ``poll`` (a socket with a timeout would add a poll and an ioctl per
+operation, each a system call that lets go of the interpreter lock).
+
 :func:`probe_service` asks a service for its handshake header without calling it:
 the service's type, md5sum and the node that provides it (what ``rosservice
 info`` shows), which the DRVS server uses to check registrations and callbacks.
@@ -21,21 +31,29 @@ info`` shows), which the DRVS server uses to check registrations and callbacks.
 
 from __future__ import annotations
 
+import heapq
 import io
+import itertools
+import logging
+import math
 import select
 import socket
 import struct
 import threading
 import time
 import xmlrpc.client
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import rosgraph
 import rosgraph.network
 import rospy
 
+logger = logging.getLogger('rosout.' + __name__)
+
 __all__ = [
     'MasterUnreachable',
+    'ReplyLoop',
     'ServiceCallError',
     'ServiceClient',
     'ServiceInfo',
@@ -46,6 +64,8 @@ __all__ = [
 
 MAX_HEADER_BYTES = 1 << 16
 MAX_RESPONSE_BYTES = 1 << 30
+REPLY_CHUNK = 1 << 16
+"""Bytes asked for by the first read of a reply (a DRVS reply is a few dozen)."""
 
 
 class ServiceCallError(Exception):
@@ -131,6 +151,7 @@ class _Deadline:
 
 
 def _connect(name: str, uri: str, deadline: _Deadline) -> socket.socket:
+    """A connected socket to ``uri``, non-blocking (every later step waits with :func:`_wait`)."""
     host, port = _parse_rosrpc(name, uri)
     try:
         sock = socket.create_connection((host, port), timeout=deadline.left())
@@ -143,19 +164,38 @@ def _connect(name: str, uri: str, deadline: _Deadline) -> socket.socket:
             f'service {name}: cannot connect to {uri}: {error.strerror or error}'
         ) from None
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.setblocking(False)
     return sock
 
 
-def _recv_exactly(sock: socket.socket, count: int, deadline: _Deadline, what: str) -> bytes:
-    chunks = []
-    while count > 0:
-        sock.settimeout(deadline.left())
+def _wait(sock: socket.socket, event: int, deadline: _Deadline, doing: str) -> None:
+    """Wait until ``sock`` is ready for ``event`` (``select.POLLIN`` / ``POLLOUT``), or an error on it.
+
+    One ``poll`` per wait: a socket with a timeout (``settimeout``) would cost a poll and
+    an ioctl per operation, each a system call that lets go of the interpreter lock,
+    which a busy server's other threads then fight over.
+
+    :raises ServiceCallError: the deadline passed first ("timed out after T s ``doing``").
+    """
+    poller = select.poll()
+    poller.register(sock, event)
+    while True:
+        left = deadline.end - time.monotonic()
+        if left <= 0:
+            break
+        if poller.poll(math.ceil(left * 1000)):
+            return
+    raise ServiceCallError(f'service {deadline.name}: timed out after {deadline.timeout:g} s {doing}')
+
+
+def _recv_some(sock: socket.socket, count: int, deadline: _Deadline, what: str) -> bytes:
+    """At least one and at most ``count`` bytes, once they arrive."""
+    while True:
+        _wait(sock, select.POLLIN, deadline, f'waiting for the {what}')
         try:
-            chunk = sock.recv(min(count, 1 << 20))
-        except TimeoutError:
-            raise ServiceCallError(
-                f'service {deadline.name}: timed out after {deadline.timeout:g} s waiting for the {what}'
-            ) from None
+            chunk = sock.recv(count)
+        except BlockingIOError:
+            continue  # a spurious wake-up
         except OSError as error:
             raise ServiceCallError(
                 f'service {deadline.name}: connection failed while reading the {what}: {error}'
@@ -164,23 +204,36 @@ def _recv_exactly(sock: socket.socket, count: int, deadline: _Deadline, what: st
             raise ServiceCallError(
                 f'service {deadline.name}: connection closed by the service before the {what}'
             )
+        return chunk
+
+
+def _recv_exactly(sock: socket.socket, count: int, deadline: _Deadline, what: str) -> bytes:
+    chunks = []
+    while count > 0:
+        chunk = _recv_some(sock, min(count, 1 << 20), deadline, what)
         chunks.append(chunk)
         count -= len(chunk)
     return b''.join(chunks)
 
 
+def _framed(data: bytes) -> bytes:
+    """A message's bytes as TCPROS sends them: their length first."""
+    return struct.pack('<I', len(data)) + data
+
+
 def _send(sock: socket.socket, data: bytes, deadline: _Deadline, what: str) -> None:
-    sock.settimeout(deadline.left())
-    try:
-        sock.sendall(data)
-    except TimeoutError:
-        raise ServiceCallError(
-            f'service {deadline.name}: timed out after {deadline.timeout:g} s sending the {what}'
-        ) from None
-    except OSError as error:
-        raise ServiceCallError(
-            f'service {deadline.name}: connection failed sending the {what}: {error}'
-        ) from None
+    view = memoryview(data)
+    while view:
+        try:
+            sent = sock.send(view)
+        except BlockingIOError:
+            _wait(sock, select.POLLOUT, deadline, f'sending the {what}')
+            continue
+        except OSError as error:
+            raise ServiceCallError(
+                f'service {deadline.name}: connection failed sending the {what}: {error}'
+            ) from None
+        view = view[sent:]
 
 
 def _handshake(sock: socket.socket, fields: dict[str, str], deadline: _Deadline) -> dict[str, str]:
@@ -264,8 +317,9 @@ class ServiceClient:
         """How many connections this client has opened (1 while all goes well)."""
         return self._connections
 
-    def call(self, request):
-        """Send ``request``; return the response.
+    def call(self, request, serialized: bytes | None = None):
+        """Send ``request``; return the response. ``serialized``: the request's bytes, if the
+        caller has them already (e.g. to count them), sent as they are.
 
         :raises ServiceCallError: naming the service and what failed (unknown
             service, connection refused, timed out after X s, the service's error
@@ -278,7 +332,7 @@ class ServiceClient:
             )
         try:
             try:
-                return self._call(request, deadline)
+                return self._call(request, deadline, serialized)
             except BaseException:
                 self._disconnect()
                 raise
@@ -300,8 +354,9 @@ class ServiceClient:
 
     def _stale(self) -> bool:
         """True if the far side closed the idle connection (readable before we asked anything)."""
-        readable, _, _ = select.select([self._sock], [], [], 0)
-        return bool(readable)
+        poller = select.poll()
+        poller.register(self._sock, select.POLLIN)
+        return bool(poller.poll(0))
 
     def _open(self, deadline: _Deadline) -> None:
         uri = lookup_service(self.service, deadline.left(), self.master_uri, self.caller_id)
@@ -322,23 +377,55 @@ class ServiceClient:
         self.header = header
         self._connections += 1
 
-    def _call(self, request, deadline: _Deadline):
+    def _call(self, request, deadline: _Deadline, serialized: bytes | None = None):
         if self._sock is not None and self._stale():
             self._disconnect()
         if self._sock is None:
             self._open(deadline)
+        data = self._serialize(request) if serialized is None else _framed(serialized)
+        _send(self._sock, data, deadline, 'request')
+        # Usually the whole reply comes in one piece: read what is there, then the rest.
+        received = _recv_some(self._sock, REPLY_CHUNK, deadline, 'reply')
+        if len(received) < 5:
+            received += _recv_exactly(self._sock, 5 - len(received), deadline, 'reply')
+        size = self._reply_size(received)
+        if len(received) < 5 + size:
+            received += _recv_exactly(self._sock, 5 + size - len(received), deadline, 'reply')
+        return self._response(received)
+
+    def _serialize(self, request) -> bytes:
+        """The request as TCPROS sends it: its length, then its bytes."""
         buffer = io.BytesIO()
+        buffer.write(b'\0\0\0\0')
         try:
             request.serialize(buffer)
         except (struct.error, TypeError, ValueError, AttributeError, OverflowError) as error:
             raise ServiceCallError(f'service {self.service}: cannot serialise the request: {error}') from None
-        data = buffer.getvalue()
-        _send(self._sock, struct.pack('<I', len(data)) + data, deadline, 'request')
-        ok, size = struct.unpack('<BI', _recv_exactly(self._sock, 5, deadline, 'reply'))
+        data = buffer.getbuffer()
+        struct.pack_into('<I', data, 0, len(data) - 4)
+        return bytes(data)
+
+    def _reply_size(self, received) -> int:
+        """The size of the reply whose first 5 bytes (ok byte, length) are ``received``'s.
+
+        :raises ServiceCallError: too large, or more bytes than the reply (the connection is out of step).
+        """
+        (size,) = struct.unpack_from('<I', received, 1)
         if size > MAX_RESPONSE_BYTES:
             raise ServiceCallError(f'service {self.service}: reply of {size} bytes is too large')
-        payload = _recv_exactly(self._sock, size, deadline, 'reply')
-        if not ok:
+        if len(received) > 5 + size:
+            raise ServiceCallError(
+                f'service {self.service}: {len(received) - 5 - size} bytes after the reply of {size} bytes'
+            )
+        return size
+
+    def _response(self, received):
+        """The response in a complete reply (ok byte, length, payload).
+
+        :raises ServiceCallError: the service answered with an error, or the payload does not deserialise.
+        """
+        payload = bytes(received[5:])
+        if not received[0]:
             text = payload.decode('utf-8', errors='replace')
             raise ServiceCallError(f'service {self.service}: the service answered with an error: {text}')
         response = self.service_class._response_class()
@@ -347,3 +434,244 @@ class ServiceClient:
         except Exception as error:  # genpy raises DeserializationError, struct.error, ...
             raise ServiceCallError(f'service {self.service}: cannot deserialise the reply: {error}') from None
         return response
+
+    # -- calls that do not wait ----------------------------------------------------------------
+    def start(
+        self,
+        request,
+        loop: ReplyLoop,
+        done: Callable[[object, ServiceCallError | None], None],
+        serialized: bytes | None = None,
+    ) -> bool:
+        """Send ``request`` (``serialized``: its bytes, if known) without waiting for the reply:
+        ``loop`` waits and calls ``done(response, None)``, or ``done(None, error)`` with the error
+        :meth:`call` would raise, once (on its thread), within ``timeout`` seconds of now.
+
+        Only on an open connection that no other call uses: returns False, having sent
+        nothing and with ``done`` never to be called, when the client has no connection
+        (or a stale one, now closed), another call is in flight, ``loop`` is not running or
+        the request could not be sent at once; :meth:`call` then does it all, blocking.
+        """
+        if not loop.running or not self._lock.acquire(blocking=False):
+            return False
+        try:
+            if self._sock is not None and self._stale():
+                self._disconnect()
+            if self._sock is None:
+                self._lock.release()
+                return False
+            deadline = _Deadline(self.service, self.timeout)
+            data = self._serialize(request) if serialized is None else _framed(serialized)
+            sent = self._sock.send(data)
+        except (ServiceCallError, OSError):  # nothing went out (or a part: the connection is unusable)
+            self._disconnect()
+            self._lock.release()
+            return False
+        except BaseException:
+            self._disconnect()
+            self._lock.release()
+            raise
+        loop.add(_InFlight(self, memoryview(data)[sent:], deadline, done))
+        return True
+
+
+class _InFlight:
+    """A call sent by :meth:`ServiceClient.start`: what is left to send, what came back, when it ends.
+
+    It holds its client's lock until it is over; :meth:`finish` releases it.
+    """
+
+    __slots__ = ('client', 'sock', 'unsent', 'received', 'deadline', 'done', 'over')
+
+    def __init__(self, client: ServiceClient, unsent: memoryview, deadline: _Deadline, done):
+        self.client = client
+        self.sock = client._sock
+        self.unsent = unsent
+        self.received = bytearray()
+        self.deadline = deadline
+        self.done = done
+        self.over = False
+
+    def events(self) -> int:
+        return select.POLLIN | (select.POLLOUT if self.unsent else 0)
+
+    def step(self):
+        """Send or read what the socket allows: the response once the reply is complete, else None.
+
+        :raises ServiceCallError: as :meth:`ServiceClient.call` would.
+        """
+        name = self.client.service
+        if self.unsent:
+            try:
+                self.unsent = self.unsent[self.sock.send(self.unsent) :]
+            except BlockingIOError:
+                pass
+            except OSError as error:
+                raise ServiceCallError(
+                    f'service {name}: connection failed sending the request: {error}'
+                ) from None
+        try:
+            chunk = self.sock.recv(REPLY_CHUNK)
+        except BlockingIOError:
+            return None
+        except OSError as error:
+            raise ServiceCallError(
+                f'service {name}: connection failed while reading the reply: {error}'
+            ) from None
+        if not chunk:
+            raise ServiceCallError(f'service {name}: connection closed by the service before the reply')
+        if self.unsent:
+            raise ServiceCallError(f'service {name}: the service answered before the whole request was sent')
+        self.received += chunk
+        if len(self.received) < 5 or len(self.received) < 5 + self.client._reply_size(self.received):
+            return None
+        return self.client._response(self.received)
+
+    def finish(self, response, error: ServiceCallError | None) -> None:
+        """The call is over: free the client (closing its connection after an error), then ``done``."""
+        self.over = True
+        if error is not None:
+            self.client._disconnect()
+        self.client._lock.release()
+        try:
+            self.done(response, error)
+        except Exception:
+            logger.exception('the callback of a call to %s failed', self.client.service)
+
+
+class ReplyLoop:
+    """One thread that waits for the replies of the calls :meth:`ServiceClient.start` sent.
+
+    It polls their sockets (and one of its own, to hear of new calls), reads each reply
+    as it comes, fails a call whose deadline passed, and runs each call's callback on its
+    thread: callbacks should be short and must not wait for a call this loop carries.
+    """
+
+    def __init__(self, name: str = 'service-replies'):
+        self.name = name
+        self._lock = threading.Lock()  # guards _added, _polling, _stopping
+        self._added: list[_InFlight] = []
+        self._polling = False  # the thread is in poll(): new calls must wake it
+        self._stopping = False
+        self._wake_read, self._wake_write = socket.socketpair()
+        self._wake_read.setblocking(False)
+        self._wake_write.setblocking(False)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and not self._stopping
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Fail every call still in flight ("shutting down") and stop the thread."""
+        with self._lock:
+            self._stopping = True
+        self._wake()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():  # stuck in a callback: it closes nothing under the thread's feet
+                logger.warning('the reply loop %s did not stop within %g s', self.name, timeout)
+                return
+        self._wake_read.close()
+        self._wake_write.close()
+
+    def add(self, call: _InFlight) -> None:
+        with self._lock:
+            self._added.append(call)
+            polling = self._polling
+        if polling:
+            self._wake()
+
+    def _wake(self) -> None:
+        try:
+            self._wake_write.send(b'.')
+        except (BlockingIOError, OSError):
+            pass  # full: it will wake anyway; closed: it has stopped
+
+    def _run(self) -> None:
+        self._poller = select.poll()
+        self._poller.register(self._wake_read, select.POLLIN)
+        self._calls: dict[int, _InFlight] = {}  # by socket
+        self._deadlines: list[tuple[float, int, _InFlight]] = []  # heap; calls that are over are skipped
+        self._order = itertools.count()
+        while True:
+            try:
+                if not self._turn():
+                    return
+            except Exception as error:  # a bug: fail what is in flight rather than hang it
+                logger.exception('the reply loop %s failed; the calls in flight fail, it goes on', self.name)
+                for call in list(self._calls.values()):
+                    self._end(call, None, ServiceCallError(f'service {call.client.service}: {error!r}'))
+                if self._stopping:
+                    return
+
+    def _turn(self) -> bool:
+        """Take the new calls, wait for one of them to be ready, read what came; False once stopped."""
+        with self._lock:
+            added, self._added = self._added, []
+            stopping = self._stopping
+            self._polling = not stopping  # from here a new call wakes the poll below
+        for call in added:
+            self._calls[call.sock.fileno()] = call
+            self._poller.register(call.sock, call.events())
+            heapq.heappush(self._deadlines, (call.deadline.end, next(self._order), call))
+        if stopping:
+            for call in list(self._calls.values()):
+                self._end(call, None, ServiceCallError(f'service {call.client.service}: shutting down'))
+            return False
+        deadlines = self._deadlines
+        while deadlines and deadlines[0][2].over:
+            heapq.heappop(deadlines)
+        timeout = -1 if not deadlines else max(0, math.ceil((deadlines[0][0] - time.monotonic()) * 1000))
+        events = self._poller.poll(timeout)
+        with self._lock:
+            self._polling = False
+        wake = self._wake_read.fileno()
+        for fd, _ in events:
+            if fd == wake:
+                self._drain()
+                continue
+            call = self._calls.get(fd)
+            if call is None:
+                continue
+            try:
+                response = call.step()
+            except ServiceCallError as error:
+                self._end(call, None, error)
+                continue
+            if response is not None:
+                self._end(call, response, None)
+            elif not call.unsent:
+                self._poller.modify(call.sock, select.POLLIN)
+        now = time.monotonic()
+        while deadlines and (deadlines[0][2].over or deadlines[0][0] <= now):
+            _, _, call = heapq.heappop(deadlines)
+            if not call.over:
+                self._end(
+                    call,
+                    None,
+                    ServiceCallError(
+                        f'service {call.client.service}: timed out after {call.deadline.timeout:g} s '
+                        'waiting for the reply'
+                    ),
+                )
+        return True
+
+    def _end(self, call: _InFlight, response, error) -> None:
+        if call.over:
+            return
+        fd = call.sock.fileno()
+        if self._calls.pop(fd, None) is not None:
+            self._poller.unregister(fd)
+        call.finish(response, error)
+
+    def _drain(self) -> None:
+        try:
+            while self._wake_read.recv(4096):
+                pass
+        except BlockingIOError:
+            pass

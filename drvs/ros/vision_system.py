@@ -26,7 +26,8 @@ Its frames come from one of two sources (:mod:`drvs.ros.frame_sources`):
 A request is validated and acknowledged at once; a worker then takes a frame,
 runs the algorithm, puts the outlines on the floor in ``map``
 (:mod:`drvs.vision`) and, only if it found at least one object, calls the
-robot back with the frame's stamp (the moment it shows).
+robot back with the frame's stamp (the moment it shows). Requests that share a
+frame and an algorithm string run the algorithm once (:class:`FrameDetections`).
 
 Watches (standing requests, ``~watch_object_boundary``): the same question asked
 once for every ``period`` seconds during ``duration`` seconds, named by
@@ -109,13 +110,16 @@ Topics and services:
 
 from __future__ import annotations
 
+import functools
 import io
+import logging
 import math
 import queue
 import threading
 import time
 import traceback
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import rospy
@@ -155,7 +159,7 @@ from drvs.srv import (
 from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.status import name as status_name
 from drvs.validation import ValidationError, request_fields
-from drvs.vision import draw_detections, in_region, locate_labelled, on_floor
+from drvs.vision import draw_detections, in_region, on_floor
 from drvs.watch_runner import Terms, WatchRunner, parse_watch
 from drvs.world import load_world
 
@@ -176,7 +180,14 @@ WATCH_POLL = 0.05
 (ROS time, which may run slower or faster than the wall under ``/use_sim_time``) and for new watches."""
 
 
+MAX_DETECTIONS_KEPT = 16
+"""Algorithm strings whose objects are kept for the newest frame; callers choose them, so capped."""
+
+
 SOURCES = ('render', 'topic')
+
+ACCEPTED_REPLY = DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message='', vision_systems=1)
+"""The answer to every accepted request (rospy only serialises it: one is shared)."""
 
 
 @dataclass(frozen=True)
@@ -325,6 +336,40 @@ class Job:
     arrival: float
 
 
+class FrameDetections:
+    """The objects found on the newest frame, per algorithm string (:func:`drvs.vision.on_floor`).
+
+    Requests that share a frame (``~max_frame_age``, :class:`drvs.vision.FrameCache`) and
+    ask with the same algorithm detect once, as the watches due at one time do; each
+    request then only clips them to its region (:func:`drvs.vision.in_region`). Not for
+    algorithms with memory (``streaming``): what they find depends on what they have seen.
+    Thread-safe: ``FrameDetections._lock`` guards the frame and its objects; detection
+    runs outside it (two workers may detect at once; the newer frame's objects are kept).
+    """
+
+    def __init__(self, limit: int = MAX_DETECTIONS_KEPT):
+        self.limit = limit
+        self._lock = threading.Lock()
+        self._frame: Frame | None = None
+        self._objects: dict[str, list] = {}  # algorithm text -> on_floor(self._frame, algorithm)
+
+    def on_floor(self, frame: Frame, algorithm) -> list:
+        """:func:`drvs.vision.on_floor` of ``frame`` and ``algorithm`` (a parsed algorithm)."""
+        if algorithm.algorithm.streaming:
+            return on_floor(frame, algorithm)
+        with self._lock:
+            objects = self._objects.get(algorithm.text) if frame is self._frame else None
+        if objects is not None:
+            return objects
+        objects = on_floor(frame, algorithm)
+        with self._lock:
+            if self._frame is None or (frame is not self._frame and frame.stamp >= self._frame.stamp):
+                self._frame, self._objects = frame, {}
+            if frame is self._frame and len(self._objects) < self.limit:
+                self._objects[algorithm.text] = objects
+        return objects
+
+
 class VisionSystemNode:
     """One camera serving DetectObjectBoundary; :meth:`start` does the work, :meth:`stop` undoes it."""
 
@@ -338,6 +383,10 @@ class VisionSystemNode:
         else:
             self.source = TopicSource(params, self._count)
         self.algorithms = load_algorithms(params.min_area, params.epsilon, params.tag_height, tag_heights)
+        # Requests: the algorithm strings that parsed lately, parsed again only when new (as parse()).
+        self._parsed_algorithms = SimpleNamespace(
+            parse=functools.lru_cache(maxsize=MAX_ALGORITHMS_COUNTED)(self.algorithms.parse)
+        )
         self._streaming_until = -1.0  # motion: observe the stream until then (rospy time)
         self.service_name = ''
         self.stats = dict.fromkeys(STATS_COUNTERS, 0)
@@ -351,6 +400,7 @@ class VisionSystemNode:
             ttl=params.callback_idle,
         )
         self._jobs: queue.Queue = queue.Queue(maxsize=params.queue_size)
+        self._detections = FrameDetections()
         self.watches = WatchRunner(
             params.min_watch_period, params.max_watch_duration, params.change_tolerance, params.max_watches
         )
@@ -428,7 +478,7 @@ class VisionSystemNode:
                 request.algorithm,
                 msg_to_box(request.region_of_interest),
                 request.callback_service,
-                self.algorithms,
+                self._parsed_algorithms,
             )
         except (AlgorithmError, ValidationError) as error:
             return self._refuse(request, Refusal(INVALID, str(error)))
@@ -448,10 +498,11 @@ class VisionSystemNode:
                 self.params.max_frame_age or 0.1,
             )
             return self._refuse(request, refusal)
-        rospy.logdebug(
-            '%s: accepted request %r (%s)', rospy.get_name(), request.request_id, request.algorithm
-        )
-        return DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, message='', vision_systems=1)
+        if _debug_logged():
+            rospy.logdebug(
+                '%s: accepted request %r (%s)', rospy.get_name(), request.request_id, request.algorithm
+            )
+        return ACCEPTED_REPLY
 
     def _refuse(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
         self._count(refused=1)
@@ -542,17 +593,18 @@ class VisionSystemNode:
             return
         if job.algorithm.algorithm.streaming:
             job.algorithm.algorithm.observe(frame)  # the model must have seen the frame it judges
-        found = locate_labelled(frame, job.algorithm, job.region)
+        found = in_region(self._detections.on_floor(frame, job.algorithm), job.region)
         outlines = [outline for outline, _ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
-        rospy.logdebug(
-            '%s: request %r: %d object(s)%s',
-            rospy.get_name(),
-            job.request_id,
-            len(outlines),
-            ' (cached frame)' if reused else '',
-        )
+        if _debug_logged():
+            rospy.logdebug(
+                '%s: request %r: %d object(s)%s',
+                rospy.get_name(),
+                job.request_id,
+                len(outlines),
+                ' (cached frame)' if reused else '',
+            )
         if found:
             self._call_back(job, frame.stamp, found)
 
@@ -626,11 +678,11 @@ class VisionSystemNode:
             objects=[points_to_detected_object(outline, label) for outline, label in found],
         )
         buffer = io.BytesIO()
-        request.serialize(buffer)
+        request.serialize(buffer)  # once: counted, then sent as it is
         client = self._callback_clients.get(asked.callback_service)
         self._callbacks_period.add('attempted')
         try:
-            client.call(request)
+            client.call(request, serialized=buffer.getvalue())
         except ServiceCallError as error:
             self._count(callback_failures=1)
             self._callbacks_period.add('failed')
@@ -825,6 +877,11 @@ class VisionSystemNode:
         message.header.frame_id = self.params.camera
         message.data = np.ascontiguousarray(image).tobytes()
         self.debug_pub.publish(message)
+
+
+def _debug_logged() -> bool:
+    """Whether a debug message would be logged (rospy formats and dispatches it before it knows)."""
+    return logging.getLogger('rosout').isEnabledFor(logging.DEBUG)
 
 
 def _why_not_registering(footprint) -> str:
