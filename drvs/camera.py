@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -74,7 +75,12 @@ class PinholeCamera:
         return math.tan(math.radians(self.fov_deg) / 2.0)
 
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(right, image-up, forward) unit vectors in ``map``, as gluLookAt builds them."""
+        """(right, image-up, forward) unit vectors in ``map``, as gluLookAt builds them (read-only)."""
+        return self._axes
+
+    @cached_property
+    def _axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # Once per camera: every projection needs them, and np.cross costs more than the projection.
         eye, target = np.asarray(self.eye, float), np.asarray(self.target, float)
         forward = target - eye
         norm = np.linalg.norm(forward)
@@ -86,7 +92,10 @@ class PinholeCamera:
         if norm < 1e-9:
             raise ValueError('camera: up is parallel to the viewing direction')
         right /= norm
-        return right, np.cross(right, forward), forward
+        axes = (right, np.cross(right, forward), forward)
+        for axis in axes:
+            axis.setflags(write=False)
+        return axes
 
     # -- projections ---------------------------------------------------------------------------
     def project_3d_to_pixel(self, points) -> np.ndarray:

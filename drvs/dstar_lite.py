@@ -34,6 +34,7 @@ Cells are ``(row, col)`` pairs; internally a flat index ``row * cols + col``.
 
 from __future__ import annotations
 
+import array
 import heapq
 import itertools
 import math
@@ -47,6 +48,14 @@ INF = math.inf
 SCALE = 1 << 20  # fixed-point units per cell of straight travel
 STRAIGHT = SCALE
 DIAGONAL = round(SQRT2 * SCALE)
+_MOVES = tuple(
+    (dr, dc, DIAGONAL if dr and dc else STRAIGHT) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc
+)
+EXACT = float(1 << 53)  # floating-point integers below this add exactly
+BATCH_MIN_CELLS = 16
+"""From this many changed cells on, :meth:`DStarLite.update_cells` recomputes with numpy."""
+BOX_CELLS_PER_CHANGE = 16
+"""...as long as the box around the changes has at most this many cells per changed cell (+ 512)."""
 
 Cell = tuple[int, int]
 
@@ -116,7 +125,14 @@ class DStarLite:
         if np.isnan(costs).any() or (costs < FREE).any():
             raise PlanningError('costs: every cell cost must be >= 1 or inf')
         self.rows, self.cols = costs.shape
-        self._cost: list[float] = costs.ravel().tolist()
+        # One float object per distinct cost: the search reads costs all over the grid, and a few
+        # shared objects stay in the CPU's cache where one object per cell would not.
+        self._costs_seen: dict[float, float] = {}
+        self._cost: list[float] = [self._costs_seen.setdefault(v, v) for v in costs.ravel().tolist()]
+        # The same costs for numpy (see _update_box), with a border of 2 impassable cells.
+        self._cost_array = np.pad(costs, 2, constant_values=INF)
+        finite = costs[np.isfinite(costs)]
+        self._integral = bool((finite == np.floor(finite)).all())  # integral costs so far
         self._goal = self._index(goal, 'goal')
         self._start = self._index(start, 'start')
         self._last = self._start
@@ -143,16 +159,17 @@ class DStarLite:
     def _neighbour_table(self) -> list[tuple[tuple[int, float, int, int], ...]]:
         """Per vertex: (neighbour, step length, side cell 1, side cell 2); sides -1 for straight steps."""
         rows, cols = self.rows, self.cols
+        ints = list(range(rows * cols))  # one int object per index, shared by the entries
         table = []
-        for index in range(rows * cols):
+        for index in ints:
             row, col = divmod(index, cols)
             entries = []
             for dr in (-1, 0, 1):
                 for dc in (-1, 0, 1):
                     if (dr or dc) and 0 <= row + dr < rows and 0 <= col + dc < cols:
-                        other = index + dr * cols + dc
+                        other = ints[index + dr * cols + dc]
                         if dr and dc:
-                            entries.append((other, DIAGONAL, index + dr * cols, index + dc))
+                            entries.append((other, DIAGONAL, ints[index + dr * cols], ints[index + dc]))
                         else:
                             entries.append((other, STRAIGHT, -1, -1))
             table.append(tuple(entries))
@@ -160,16 +177,6 @@ class DStarLite:
 
     def cost(self, cell: Cell) -> float:
         return self._cost[self._index(cell, 'cell')]
-
-    def _edge(self, step: int, target: int, side1: int, side2: int) -> int | float:
-        """Cost (fixed-point) of moving into ``target``; a diagonal step also pays its two side cells."""
-        cost = self._cost
-        c = cost[target]
-        if side1 >= 0:
-            c = max(c, cost[side1], cost[side2])
-        if c == FREE:
-            return step
-        return INF if c == INF else round(step * c)
 
     def _heuristic(self, a: int, b: int) -> int:
         ar, ac = divmod(a, self.cols)
@@ -184,56 +191,169 @@ class DStarLite:
         m = min(self.g[s], self.rhs[s])
         return (m + self._heuristic(self._start, s) + self.km, m)
 
-    def update_vertex(self, u: int) -> None:
-        if self.g[u] != self.rhs[u]:
-            self.queue.push(u, self.calculate_key(u))
-        else:
-            self.queue.remove(u)
+    def _procedures(self):
+        """(update_vertex, best_successor_cost) of the paper, as closures over this planner's lists.
 
-    def _best_successor_cost(self, u: int) -> int | float:
-        """min over successors s' of c(u, s') + g(s'): the rhs value of ``u``."""
-        g = self.g
-        best = INF
-        for other, step, side1, side2 in self._neighbours[u]:
-            if g[other] == INF:
-                continue
-            value = self._edge(step, other, side1, side2) + g[other]
-            if value < best:
-                best = value
-        return best
+        The search's inner loops call them for every neighbour of every expanded
+        vertex: closures over local names, with the key, heuristic and edge cost
+        written out, cost much less than methods calling methods (the repair of a
+        small map change was mostly that overhead). ``update_vertex`` does not push
+        a vertex already queued with the key it would get: its heap entry stands,
+        so the queue's order is the same with fewer stale entries. Valid while the
+        start and ``km`` stay as they are (make new ones after :meth:`set_start`).
+        """
+        g, rhs, cost, neighbours, cols, km = (
+            self.g,
+            self.rhs,
+            self._cost,
+            self._neighbours,
+            self.cols,
+            self.km,
+        )
+        keys, heap, tie, push = self.queue._key, self.queue._heap, self.queue._tie, heapq.heappush
+        start_row, start_col = divmod(self._start, cols)
+        diagonal_extra = DIAGONAL - STRAIGHT
+
+        def update_vertex(u: int) -> None:
+            gu, ru = g[u], rhs[u]
+            if gu == ru:
+                keys.pop(u, None)
+                return
+            m = gu if gu < ru else ru
+            row, col = divmod(u, cols)
+            dr, dc = abs(row - start_row), abs(col - start_col)
+            h = dr * STRAIGHT + dc * diagonal_extra if dr >= dc else dc * STRAIGHT + dr * diagonal_extra
+            k1 = m + h + km
+            if keys.get(u) != (k1, m):
+                keys[u] = (k1, m)
+                push(heap, (k1, m, next(tie), u))
+
+        def best_successor_cost(u: int) -> int | float:
+            """min over successors s' of c(u, s') + g(s'): the rhs value of ``u``."""
+            best = INF
+            for other, step, side1, side2 in neighbours[u]:
+                g_other = g[other]
+                if g_other == INF:
+                    continue
+                c = cost[other]
+                if side1 >= 0:
+                    c = max(c, cost[side1], cost[side2])
+                if c == FREE:
+                    value = step + g_other
+                elif c == INF:
+                    continue
+                else:
+                    value = round(step * c) + g_other
+                if value < best:
+                    best = value
+            return best
+
+        return update_vertex, best_successor_cost
+
+    def update_vertex(self, u: int) -> None:
+        self._procedures()[0](u)
 
     def compute_shortest_path(self) -> None:
         """Expand vertices until the start is locally consistent and no key below it remains."""
-        g, rhs, queue, start = self.g, self.rhs, self.queue, self._start
-        neighbours, goal = self._neighbours, self._goal
+        g, rhs, cost, start, km = self.g, self.rhs, self._cost, self._start, self.km
+        neighbours, cols = self._neighbours, self.cols
+        keys, heap, tie, push, pop = (
+            self.queue._key,
+            self.queue._heap,
+            self.queue._tie,
+            heapq.heappush,
+            heapq.heappop,
+        )
+        update_vertex, best_successor_cost = self._procedures()
+        start_row, start_col = divmod(start, cols)
+        diagonal_extra = DIAGONAL - STRAIGHT
+        expansions = 0
         while True:
-            top = queue.top()
-            if top is None:
+            while heap:  # the queue's top: stale heap entries are dropped
+                k1, k2, _, u = heap[0]
+                if keys.get(u) == (k1, k2):
+                    break
+                pop(heap)
+            else:
                 break
-            k_old, u = top
-            if not (k_old < self.calculate_key(start) or rhs[start] > g[start]):
+            g_start, rhs_start = g[start], rhs[start]
+            m = g_start if g_start < rhs_start else rhs_start
+            if not ((k1, k2) < (m + km, m) or rhs_start > g_start):  # calculate_key(start): h = 0
                 break
-            self.expansions += 1
-            k_new = self.calculate_key(u)
-            if k_old < k_new:
-                queue.push(u, k_new)
-            elif g[u] > rhs[u]:
-                g[u] = rhs[u]
-                queue.remove(u)
+            expansions += 1
+            gu, ru = g[u], rhs[u]
+            m = gu if gu < ru else ru
+            row, col = divmod(u, cols)
+            dr, dc = abs(row - start_row), abs(col - start_col)
+            h = dr * STRAIGHT + dc * diagonal_extra if dr >= dc else dc * STRAIGHT + dr * diagonal_extra
+            k_new = (m + h + km, m)  # calculate_key(u)
+            if (k1, k2) < k_new:
+                keys[u] = k_new
+                push(heap, (k_new[0], m, next(tie), u))
+            elif gu > ru:
+                g[u] = ru
+                del keys[u]
                 # The graph is undirected in its neighbours; edge costs depend on the
                 # target cell, so c(s, u) is the cost of entering u from s.
+                # rhs(s) = min(rhs(s), c(s, u) + g(u)): only possible when rhs(s) > step + g(u),
+                # as every cost is at least 1 (and never for the goal, whose rhs is 0).
+                cost_u = cost[u]
                 for s, step, side1, side2 in neighbours[u]:
-                    if s != goal:
-                        value = self._edge(step, u, side1, side2) + g[u]
-                        if value < rhs[s]:
-                            rhs[s] = value
-                    self.update_vertex(s)
+                    rs = rhs[s]
+                    if rs > step + ru:
+                        c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
+                        if c != INF:
+                            value = (step if c == FREE else round(step * c)) + ru
+                            if value < rs:
+                                rhs[s] = rs = value
+                    gs = g[s]  # update_vertex(s), written out: this loop is the search's hottest
+                    if gs == rs:
+                        if s in keys:
+                            del keys[s]
+                        continue
+                    m = gs if gs < rs else rs
+                    row, col = divmod(s, cols)
+                    dr, dc = abs(row - start_row), abs(col - start_col)
+                    h = (
+                        dr * STRAIGHT + dc * diagonal_extra
+                        if dr >= dc
+                        else dc * STRAIGHT + dr * diagonal_extra
+                    )
+                    k1 = m + h + km
+                    if keys.get(s) != (k1, m):
+                        keys[s] = (k1, m)
+                        push(heap, (k1, m, next(tie), s))
             else:
+                # Figure 4 of the paper: of u's predecessors, only those whose rhs came through u
+                # can change (an exact test: costs are integers); rhs(u) does not depend on g(u).
+                # (Again rhs(s) >= step + g(u) is needed, and the goal's rhs is 0.)
                 g[u] = INF
-                for s in (u, *(entry[0] for entry in neighbours[u])):
-                    if s != goal:
-                        rhs[s] = self._best_successor_cost(s)
-                    self.update_vertex(s)
+                update_vertex(u)
+                cost_u = cost[u]
+                for s, step, side1, side2 in neighbours[u]:
+                    rs = rhs[s]
+                    if rs >= step + gu:
+                        c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
+                        if c != INF and rs == (step if c == FREE else round(step * c)) + gu:
+                            rhs[s] = rs = best_successor_cost(s)
+                    gs = g[s]  # update_vertex(s), written out
+                    if gs == rs:
+                        if s in keys:
+                            del keys[s]
+                        continue
+                    m = gs if gs < rs else rs
+                    row, col = divmod(s, cols)
+                    dr, dc = abs(row - start_row), abs(col - start_col)
+                    h = (
+                        dr * STRAIGHT + dc * diagonal_extra
+                        if dr >= dc
+                        else dc * STRAIGHT + dr * diagonal_extra
+                    )
+                    k1 = m + h + km
+                    if keys.get(s) != (k1, m):
+                        keys[s] = (k1, m)
+                        push(heap, (k1, m, next(tie), s))
+        self.expansions += expansions
 
     def set_start(self, cell: Cell) -> None:
         """The robot moved: keep the search, raise ``km`` by the heuristic distance moved."""
@@ -249,26 +369,141 @@ class DStarLite:
 
         A cell's cost enters every edge into it and every diagonal edge beside it;
         all of those start at the cell or one of its neighbours, so those are the
-        vertices whose ``rhs`` is recomputed. Call :meth:`compute_shortest_path` next.
+        vertices whose ``rhs`` is recomputed (``g`` does not change here). Each of
+        them whose ``rhs`` changed, or that is inconsistent (queued: its key is
+        brought up to date), goes through ``update_vertex``; for the others it
+        would do nothing. Call :meth:`compute_shortest_path` next. A bad change
+        raises :class:`PlanningError`; the changes before it are applied.
         """
-        touched: set[int] = set()
-        changed = 0
-        for cell, cost in changes:
-            index = self._index(cell, 'cell')
-            cost = float(cost)
-            if math.isnan(cost) or cost < FREE:
-                raise PlanningError(f'cell {tuple(cell)}: cost must be >= 1 or inf, got {cost}')
-            if self._cost[index] == cost:
-                continue
-            self._cost[index] = cost
-            changed += 1
-            touched.add(index)
-            touched.update(entry[0] for entry in self._neighbours[index])
+        indices: list[int] = []
+        own, seen, rows, cols = self._cost, self._costs_seen, self.rows, self.cols
+        try:
+            for cell, cost in changes:
+                row, col = int(cell[0]), int(cell[1])
+                if not (0 <= row < rows and 0 <= col < cols):
+                    self._index(cell, 'cell')  # raises, naming the cell
+                index = row * cols + col
+                cost = float(cost)
+                if not cost >= FREE:  # NaN too
+                    raise PlanningError(f'cell {tuple(cell)}: cost must be >= 1 or inf, got {cost}')
+                if own[index] != cost:
+                    if len(seen) < 256:
+                        cost = seen.setdefault(cost, cost)
+                    own[index] = cost
+                    indices.append(index)
+        finally:
+            if indices:
+                r, c = np.divmod(np.array(indices), cols)
+                new = np.array([own[index] for index in indices])
+                self._cost_array[r + 2, c + 2] = new
+                if self._integral and not (np.floor(new) == new).all():
+                    self._integral = False
+                if len(indices) < BATCH_MIN_CELLS or not self._update_box(r, c):
+                    self._update_each(indices)
+        return len(indices)
+
+    def _update_each(self, indices: list[int]) -> None:
+        """:meth:`update_cells`' repair, one vertex at a time (few or scattered changes)."""
+        neighbours = self._neighbours
+        touched = set(indices)
+        for index in indices:
+            touched.update([entry[0] for entry in neighbours[index]])
+        update_vertex, best_successor_cost = self._procedures()
+        rhs, goal = self.rhs, self._goal
         for u in touched:
-            if u != self._goal:
-                self.rhs[u] = self._best_successor_cost(u)
-            self.update_vertex(u)
-        return changed
+            if u != goal:
+                rhs[u] = best_successor_cost(u)
+            update_vertex(u)
+
+    def _update_box(self, r: np.ndarray, c: np.ndarray) -> bool:
+        """:meth:`update_cells`' repair with numpy over the box around the changed cells (rows ``r``,
+        columns ``c``).
+
+        A map change is usually one compact blob (an obstacle moved), whose few
+        hundred vertices cost a microsecond or two each in Python. Here the ``rhs``
+        of every vertex of the box is computed at once, as ``best_successor_cost``
+        does it, with the same ``round(step * c)`` (numpy's ``rint`` also rounds half
+        to even), in floating point: exact while every value is an integer below
+        2**53. Returns False, having changed nothing, when the box is much larger
+        than the change (scattered cells) or a value is too large to be exact; the
+        caller then goes vertex by vertex.
+        """
+        rows, cols = self.rows, self.cols
+        r0, c0 = int(r.min()) - 2, int(c.min()) - 2  # the box: the changed cells, their
+        r1, c1 = int(r.max()) + 3, int(c.max()) + 3  # neighbours and theirs; r1, c1 exclusive
+        height, width = r1 - r0, c1 - c0
+        if height * width > BOX_CELLS_PER_CHANGE * len(r) + 512:
+            return False
+        # The box's costs (the mirror has a border of 2 impassable cells), g and rhs (inf outside
+        # the grid). Lists become arrays fastest through array.array.
+        C = self._cost_array[r0 + 2 : r1 + 2, c0 + 2 : c1 + 2]
+        g, rhs = self.g, self.rhs
+        top, bottom, left, right = max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols)
+        g_box, rhs_box = [], []
+        for row in range(top * cols, bottom * cols, cols):
+            g_box += g[row + left : row + right]
+            rhs_box += rhs[row + left : row + right]
+        shape = (bottom - top, right - left)
+        G = np.frombuffer(array.array('d', g_box)).reshape(shape)
+        R = np.frombuffer(array.array('d', rhs_box)).reshape(shape)
+        if shape != (height, width):  # at the grid's edge
+            inside = (slice(top - r0, bottom - r0), slice(left - c0, right - c0))
+            G_inside, R_inside = G, R
+            G, R = np.full((height, width), INF), np.full((height, width), INF)
+            G[inside], R[inside] = G_inside, R_inside
+
+        def at(array, dr, dc):  # array[row + dr, col + dc] for the vertices (row, col) of the inner box
+            return array[1 + dr : height - 1 + dr, 1 + dc : width - 1 + dc]
+
+        # best_successor_cost for every vertex at once. Straight steps: c(u, v) = cost(v).
+        integral = self._integral  # integral costs times integral steps need no rounding
+        value = C * STRAIGHT
+        if not integral:
+            np.rint(value, out=value)
+        value += G
+        best = at(value, -1, 0).copy()
+        for dr, dc in ((1, 0), (0, -1), (0, 1)):
+            np.minimum(best, at(value, dr, dc), out=best)
+        # Diagonals: the dearest of the target and the two side cells. pair[i, j] is
+        # max(cost[i, j], cost[i, j + 1]): the target and the side in its row are one pair.
+        pair = np.maximum(C[:, :-1], C[:, 1:])
+        for dr, dc in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+            value = (
+                pair[1 + dr : height - 1 + dr, 0 : width - 2]
+                if dc < 0
+                else pair[1 + dr : height - 1 + dr, 1 : width - 1]
+            )
+            value = np.maximum(value, at(C, 0, dc))
+            value *= DIAGONAL
+            if not integral:
+                np.rint(value, out=value)
+            value += at(G, dr, dc)
+            np.minimum(best, value, out=best)
+        old = at(R, 0, 0)
+        both = np.concatenate((best, old))
+        if ((both >= EXACT) & (both < INF)).any():
+            return False
+        # The vertices to update: the changed cells and their neighbours (a 3x3 dilation)...
+        changed = np.zeros((height, width), dtype=bool)
+        changed[r - r0, c - c0] = True
+        across = changed[:, :-2] | changed[:, 1:-1] | changed[:, 2:]
+        touched = across[:-2] | across[1:-1] | across[2:]
+        if shape != (height, width):  # no vertex outside the grid (its "rhs" may be finite)
+            inside = np.zeros_like(touched)
+            inside[max(top - r0 - 1, 0) : bottom - r0 - 1, max(left - c0 - 1, 0) : right - c0 - 1] = True
+            touched &= inside
+        goal_row, goal_col = divmod(self._goal, cols)
+        if r0 < goal_row < r1 - 1 and c0 < goal_col < c1 - 1:
+            best[goal_row - r0 - 1, goal_col - c0 - 1] = 0.0  # rhs(goal) stays 0
+        # ... whose rhs changed or that are inconsistent (queued); update_vertex does nothing to others.
+        select = touched & ((best != old) | (at(G, 0, 0) != best))
+        ys, xs = np.nonzero(select)
+        vertices = ((ys + (r0 + 1)) * cols + (xs + (c0 + 1))).tolist()
+        update_vertex = self._procedures()[0]
+        for u, value in zip(vertices, best[select].tolist(), strict=True):
+            rhs[u] = INF if value == INF else int(value)
+            update_vertex(u)
+        return True
 
     # -- results ---------------------------------------------------------------------------
     def path_cost(self) -> float:
@@ -283,10 +518,17 @@ class DStarLite:
         cells = [self._start]
         current = self._start
         visited = {current}
+        g, cost, neighbours = self.g, self._cost, self._neighbours
         while current != self._goal:
             best, best_value = -1, INF
-            for other, step, side1, side2 in self._neighbours[current]:
-                value = self._edge(step, other, side1, side2) + self.g[other]
+            for other, step, side1, side2 in neighbours[current]:  # c(current, other) + g(other)
+                g_other = g[other]
+                if g_other == INF:
+                    continue
+                c = max(cost[other], cost[side1], cost[side2]) if side1 >= 0 else cost[other]
+                if c == INF:
+                    continue
+                value = (step if c == FREE else round(step * c)) + g_other
                 if value < best_value:
                     best, best_value = other, value
             if best < 0 or best in visited:

@@ -29,7 +29,6 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 from shapely.geometry import Polygon, box
-from shapely.geometry.polygon import orient
 
 from drvs.algorithms import PixelObject
 from drvs.scene import Frame
@@ -46,31 +45,45 @@ def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
     centres are inside the outline belong to the object; the nearest depth among
     them is used (searching a little further out for a vertex on a thin spike).
     """
-    height, width = frame.depth.shape
+    depth = frame.depth
+    height, width = depth.shape
     contour = outline.astype(np.float32).reshape(-1, 1, 2)
-    depths = np.full(len(outline), np.nan)
-    for i, (u, v) in enumerate(outline):
-        cu, cv = int(round(u)), int(round(v))
-        found = None
-        for radius in (1, 2, 3):
-            best = None
-            for row in range(cv - radius, cv + radius):
-                for col in range(cu - radius, cu + radius):
-                    if not (0 <= row < height and 0 <= col < width):
-                        continue
-                    if cv2.pointPolygonTest(contour, (col + 0.5, row + 0.5), False) < 0:
-                        continue
-                    d = frame.depth[row, col]
-                    if not d > 0:  # a hole in a depth camera's image (0 or NaN)
-                        continue
-                    best = d if best is None else min(best, d)
-            if best is not None:
-                found = best
-                break
-        if found is None:  # degenerate outline: the nearest pixel whatever it is (NaN if a hole)
-            found = frame.depth[min(max(cv, 0), height - 1), min(max(cu, 0), width - 1)]
-        depths[i] = found if found > 0 else np.nan
+    # The 2 x 2 pixels around every vertex at once (radius 1), with holes (0, NaN) left out.
+    cu, cv = np.round(outline).astype(int).T
+    rows = cv[:, None] + np.array([-1, -1, 0, 0])
+    cols = cu[:, None] + np.array([-1, 0, -1, 0])
+    on_image = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+    values = np.full(rows.shape, np.nan, np.float32)
+    values[on_image] = depth[rows[on_image], cols[on_image]]
+    valid = values > 0
+    for i, k in zip(*np.nonzero(valid), strict=True):
+        centre = (float(cols[i, k]) + 0.5, float(rows[i, k]) + 0.5)
+        valid[i, k] = cv2.pointPolygonTest(contour, centre, False) >= 0
+    depths = np.where(valid, values, np.inf).min(axis=1)
+    for i in np.nonzero(~valid.any(axis=1))[0]:  # a thin spike: look further out
+        depths[i] = _depth_further(depth, contour, int(cu[i]), int(cv[i]))
     return depths
+
+
+def _depth_further(depth: np.ndarray, contour: np.ndarray, cu: int, cv: int) -> float:
+    """:func:`vertex_depths` for a vertex with none of the object's pixels in its 2 x 2."""
+    height, width = depth.shape
+    for radius in (2, 3):
+        best = None
+        for row in range(max(cv - radius, 0), min(cv + radius, height)):
+            for col in range(max(cu - radius, 0), min(cu + radius, width)):
+                d = depth[row, col]
+                if not d > 0:  # a hole in a depth camera's image (0 or NaN)
+                    continue
+                if best is not None and d >= best:
+                    continue
+                if cv2.pointPolygonTest(contour, (col + 0.5, row + 0.5), False) >= 0:
+                    best = d
+        if best is not None:
+            return best
+    # Degenerate outline: the nearest pixel whatever it is (NaN if a hole).
+    found = depth[min(max(cv, 0), height - 1), min(max(cu, 0), width - 1)]
+    return found if found > 0 else np.nan
 
 
 def floor_points(frame: Frame, pixel_object: PixelObject) -> np.ndarray:
@@ -84,14 +97,13 @@ def floor_points(frame: Frame, pixel_object: PixelObject) -> np.ndarray:
     pixels = frame.to_camera(outline)
     if pixel_object.height is not None:
         points = frame.camera.pixel_to_floor(pixels, z=pixel_object.height)
+    elif frame.depth is None:
+        points = frame.camera.pixel_to_floor(pixels)
     else:
-        floor = frame.camera.pixel_to_floor(pixels)
-        if frame.depth is None:
-            points = floor
-        else:
-            points = frame.camera.pixel_to_point(pixels, vertex_depths(frame, outline))
-            holes = ~np.all(np.isfinite(points), axis=1)
-            points[holes] = floor[holes]
+        points = frame.camera.pixel_to_point(pixels, vertex_depths(frame, outline))
+        holes = ~np.all(np.isfinite(points), axis=1)
+        if holes.any():  # no depth there: the floor plane
+            points[holes] = frame.camera.pixel_to_floor(pixels)[holes]
     return points[np.all(np.isfinite(points), axis=1)]
 
 
@@ -113,16 +125,34 @@ def _polygons(shape) -> list[Polygon]:
 
 
 def ring(shape: Polygon) -> Outline:
-    """A polygon's exterior, counter-clockwise, without the closing vertex."""
-    return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]
+    """A polygon's exterior, counter-clockwise, without the closing vertex.
+
+    What ``orient(shape, 1.0).exterior`` gives (the same signed-area sum, so the
+    same choice), without building a new polygon, which costs more than the rest.
+    """
+    coords = [(float(x), float(y)) for x, y, *_ in shape.exterior.coords]
+    xs = [x for x, _ in coords] + [coords[1][0]]
+    ys = [y for _, y in coords] + [coords[1][1]]
+    if sum(xs[i] * (ys[i + 1] - ys[i - 1]) for i in range(1, len(coords))) / 2.0 < 0.0:
+        coords.reverse()
+    return coords[:-1]
 
 
 def on_floor(frame: Frame, algorithm) -> list[tuple[Polygon, list | None, str]]:
     """Every object ``algorithm`` (a :class:`drvs.algorithms.Parsed`) finds in ``frame``, on the
     floor: (floor shape, ordered points or None, label). Whatever the region asked for, so that
-    several requests with one algorithm on one frame detect once (:func:`in_region` clips)."""
+    several requests with one algorithm on one frame detect once (:func:`in_region` clips).
+
+    Two stages: the algorithm segments the image (pixel outlines), then
+    :func:`project_objects` puts them on the floor."""
+    return project_objects(frame, algorithm.detect(frame))
+
+
+def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[tuple[Polygon, list | None, str]]:
+    """The objects an algorithm found in ``frame`` (pixel outlines) on the floor, as :func:`on_floor`
+    gives them."""
     found = []
-    for pixel_object in algorithm.detect(frame):
+    for pixel_object in pixel_objects:
         if pixel_object.keep_order:
             points = floor_points(frame, pixel_object)
             if len(points) == len(pixel_object.outline):
@@ -144,13 +174,20 @@ def in_region(
     whole, in its own order, when it intersects the region.
     """
     region = box(*region_of_interest)
+    low_x, low_y, high_x, high_y = region_of_interest
     found = []
     for shape, ordered, label in objects:
+        # Bounds first: an object wholly outside or wholly inside the region needs no GEOS
+        # operation (the intersection was most of a one-camera request's time).
+        min_x, min_y, max_x, max_y = shape.bounds
+        if max_x < low_x or min_x > high_x or max_y < low_y or min_y > high_y:
+            continue
+        inside = low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y
         if ordered is not None:
-            if shape.intersects(region):
+            if inside or shape.intersects(region):
                 found.append((ordered, label))
             continue
-        for part in _polygons(shape.intersection(region)):
+        for part in _polygons(shape if inside else shape.intersection(region)):
             found.append((ring(part), label))
     return found
 

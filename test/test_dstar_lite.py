@@ -5,7 +5,10 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+import drvs.dstar_lite as dstar_lite
 from drvs.dstar_lite import INF, SCALE, SQRT2, DStarLite, PlanningError, octile, path_cost
 
 
@@ -72,6 +75,29 @@ def test_same_cost_as_dijkstra_on_random_grids(seed):
     else:
         assert path[0] == start and path[-1] == goal
         assert path_cost(costs, path) == pytest.approx(expected)
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_the_benchmarks_a_star_agrees_exactly(seed):
+    """bench/planner.py compares D* Lite's repair with its A*: same moves, same fixed-point costs."""
+    from bench.planner import astar, astar_path
+
+    rng = np.random.default_rng(200 + seed)
+    costs = random_grid(rng, 25, 30, density=0.25, expensive=0.1)
+    costs[rng.random(costs.shape) < 0.05] = 1e6  # the inflated margin's cost
+    start, goal = random_free_cell(rng, costs), random_free_cell(rng, costs)
+    planner = plan(costs, start, goal)
+    cols = costs.shape[1]
+    cost, parent, _ = astar(
+        costs.ravel().tolist(), *costs.shape, start[0] * cols + start[1], goal[0] * cols + goal[1]
+    )
+    assert cost / SCALE == planner.path_cost()
+    if cost != INF:
+        path = [
+            divmod(i, cols) for i in astar_path(parent, start[0] * cols + start[1], goal[0] * cols + goal[1])
+        ]
+        assert path[0] == start and path[-1] == goal
+        assert path_cost(costs, path) == pytest.approx(planner.path_cost())
 
 
 @pytest.mark.parametrize('seed', range(10))
@@ -235,3 +261,112 @@ def test_bad_cell_update_is_refused():
 
 def test_octile_distance():
     assert octile((0, 0), (3, 5)) == pytest.approx(2 + 3 * math.sqrt(2))
+
+
+# -- update_cells: the numpy repair of a blob of changes against the per-vertex one ---------------
+PALETTES = (
+    (1.0, 1.0, 1.0, 3.0, 1e6, INF),  # integral costs: no rounding needed
+    (1.0, 1.0, 1.0, 1.5, 2.25, 3.0, 1e6, INF),  # non-integral ones exercise the rounding
+)
+
+
+def exact_distances(costs: np.ndarray, goal) -> list[int | float]:
+    """Fixed-point cost of the best path from every cell to ``goal`` (Dijkstra backwards, integers)."""
+    rows, cols = costs.shape
+    flat = costs.ravel().tolist()
+    dist: list[int | float] = [INF] * (rows * cols)
+    start = goal[0] * cols + goal[1]
+    dist[start] = 0
+    heap = [(0, start)]
+    while heap:
+        d, v = heapq.heappop(heap)
+        if d > dist[v]:
+            continue
+        row, col = divmod(v, cols)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if not (dr or dc) or not (0 <= row + dr < rows and 0 <= col + dc < cols):
+                    continue
+                u = v + dr * cols + dc  # the edge u -> v enters v; a diagonal pays its two sides
+                c = max(flat[v], flat[u - dr * cols], flat[u - dc]) if dr and dc else flat[v]
+                if c == INF:
+                    continue
+                step = dstar_lite.DIAGONAL if dr and dc else dstar_lite.STRAIGHT
+                value = d + (step if c == 1.0 else round(step * c))
+                if value < dist[u]:
+                    dist[u] = value
+                    heapq.heappush(heap, (value, u))
+    return dist
+
+
+@st.composite
+def change_runs(draw):
+    """A grid, start and goal, then a few rounds of (new start, changes): a blob (a rectangle of new
+    costs, often large enough for the numpy repair, clipped by the grid's edge) plus scattered cells."""
+    rows, cols = draw(st.integers(3, 22)), draw(st.integers(3, 22))
+    cell = st.tuples(st.integers(0, rows - 1), st.integers(0, cols - 1))
+    cost = st.sampled_from(draw(st.sampled_from(PALETTES)))
+    costs = np.array(draw(st.lists(cost, min_size=rows * cols, max_size=rows * cols)))
+    rounds = []
+    for _ in range(draw(st.integers(1, 4))):
+        top, left = draw(cell)
+        height, width = draw(st.integers(1, 8)), draw(st.integers(1, 8))
+        fill = draw(st.lists(cost, min_size=height * width, max_size=height * width))
+        changes = [
+            ((r, c), fill[(r - top) * width + (c - left)])
+            for r in range(top, min(top + height, rows))
+            for c in range(left, min(left + width, cols))
+        ]
+        changes += draw(st.lists(st.tuples(cell, cost), max_size=6))
+        rounds.append((draw(cell), changes))
+    return costs.reshape(rows, cols), draw(cell), draw(cell), rounds
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(change_runs())
+def test_update_cells_in_bulk_matches_vertex_by_vertex_and_a_fresh_plan(run):
+    """update_cells repairs a blob of changes with numpy (_update_box); the state must be exactly
+    the per-vertex repair's (same g, rhs, queue), rhs must be the one-step lookahead of g on the new
+    costs everywhere, and after the search the cost, the path and g along it must be a fresh plan's."""
+    costs, start, goal, rounds = run
+    costs = costs.copy()
+    bulk, single = DStarLite(costs, start, goal), DStarLite(costs, start, goal)
+    for planner in (bulk, single):
+        planner.compute_shortest_path()
+    for start, changes in rounds:
+        for cell, value in changes:
+            costs[cell] = value
+        bulk.set_start(start)
+        bulk.update_cells(changes)
+        single.set_start(start)
+        limit = dstar_lite.BATCH_MIN_CELLS
+        dstar_lite.BATCH_MIN_CELLS = 10**9  # this planner repairs vertex by vertex
+        try:
+            single.update_cells(changes)
+        finally:
+            dstar_lite.BATCH_MIN_CELLS = limit
+        assert bulk.g == single.g and bulk.rhs == single.rhs
+        assert bulk.queue._key == single.queue._key
+        lookahead = DStarLite(costs, start, goal)._procedures  # fresh costs, and this g
+        lookahead.__self__.g = bulk.g
+        best_successor_cost = lookahead()[1]
+        goal_index = goal[0] * costs.shape[1] + goal[1]
+        for u in range(costs.size):
+            assert bulk.rhs[u] == (0 if u == goal_index else best_successor_cost(u)), u
+            assert (u in bulk.queue) == (bulk.g[u] != bulk.rhs[u]), u
+        for planner in (bulk, single):
+            planner.compute_shortest_path()
+        assert bulk.g == single.g and bulk.rhs == single.rhs and bulk.path() == single.path()
+        fresh = plan(costs, start, goal)
+        distance = exact_distances(costs, goal)
+        cols = costs.shape[1]
+        assert bulk.path_cost() == fresh.path_cost()
+        assert bulk.path_cost() == (
+            INF
+            if distance[start[0] * cols + start[1]] == INF
+            else distance[start[0] * cols + start[1]] / SCALE
+        )
+        path = bulk.path()
+        assert path == fresh.path()
+        for r, c in path[1:]:  # the start's own g may be left behind its rhs (Figure 4: rhs > g stops)
+            assert bulk.g[r * cols + c] == distance[r * cols + c] == fresh.g[r * cols + c]

@@ -106,7 +106,8 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
     import cv2
     from shapely.geometry import Polygon
 
-    if not mask.any():
+    # countNonZero reads a uint8 mask several times faster than ndarray.any().
+    if not (cv2.countNonZero(mask) if mask.dtype == np.uint8 and mask.ndim == 2 else mask.any()):
         return []
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     found = []
