@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup rviz-setup test test-slow soak reliability-report demo lint format docs clean
+.PHONY: setup rviz-setup test test-slow soak reliability-report bench demo lint format docs clean
 
 setup:
 	@bash scripts/setup.sh
@@ -34,6 +34,11 @@ soak: setup
 	@mkdir -p out && rm -f $(SOAK_LOG)
 	DRVS_RELIABILITY_LOG=$(CURDIR)/$(SOAK_LOG) $(PY) -m pytest -m slow $(PYTEST_ARGS); status=$$?; \
 	$(PY) scripts/reliability_report.py --soak --slow-log $(SOAK_LOG) $(PYTEST_ARGS) && exit $$status
+
+# The benchmarks (bench/, issue 16): bench/results/latest.md, latest.json, the plots, and
+# README.md's Performance section. QUICK=1: small sizes, about 3 minutes. BENCH_ARGS='--only wire'.
+bench: setup
+	$(PY) -m bench.run --size $(if $(QUICK),quick,full) --readme $(BENCH_ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -23,6 +23,7 @@ APT_PACKAGES=(
   python3-cv-bridge python3-image-geometry python3-tf2-ros python3-message-filters tf2-tools
   python3-diagnostic-msgs ros-diagnostic-msgs python3-visualization-msgs ros-visualization-msgs
   python3-rosbag
+  python3-scipy  # make bench: its natural photograph (scipy.misc.face) for the image-sharing comparison
 )
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).

@@ -400,6 +400,11 @@ def test_a_recorded_scenario_replays_and_regenerates_its_summary(ros: RosHarness
     live = json.loads((out / 'summary.json').read_text())
     assert json.loads((again / 'summary.json').read_text()) == live
     assert live['reached'] is True and live['cpu'] and live['elapsed'] > 0
+    # This is also `make test`'s run of case study 4.1 (test_scenarios' own run of it is slow):
+    # no contact, nearly the straight line from start to station, both cameras calling back.
+    assert live['collisions'] == 0
+    assert live['driven_length'] == pytest.approx(live['best_length'], rel=0.15)
+    assert all(live['vision_systems'][camera]['callbacks'] > 0 for camera in ('vs1', 'vs2')), live
     assert (again / 'run.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
     # rosbag play brings the latched registry and the cameras' static tf back, for RViz. The

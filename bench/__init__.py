@@ -1,0 +1,1 @@
+"""DRVS benchmarks: ``make bench`` (``.venv/bin/python -m bench.run``); see bench/README.md."""

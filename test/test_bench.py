@@ -1,0 +1,135 @@
+"""The benchmark harness (`make bench`) at tiny sizes: a smoke test, not a measurement.
+
+Every section runs end to end and reports its targets in the shape latest.json
+promises; nothing here looks at a time.
+"""
+
+import json
+import math
+import subprocess
+import sys
+import types
+
+import pytest
+
+from bench import run as bench_run
+from bench.common import Context, Section, percentile, spread, target
+from drvs.testing.harness import REPO
+
+TARGETS = {
+    'wire': ['callback_bytes_one_object', 'image_to_drvs_bytes_10x50_photo', 'robot_cpu_image_over_drvs'],
+    'latency': ['ack_over_plain_call', 'first_callback_over_three_calls'],
+    'throughput': ['forwarded_rate_over_raw_rate_fanout1', 'forwarded_rate_over_raw_rate_fanout5'],
+    'registry': ['match_1m_p50_us', 'match_1m_moving_over_static', 'register_1m_us'],
+    'vision': ['segment_project_800x600_ms'],
+    'planner': ['dstar_repair_speedup'],
+    'fleet': ['watch_message_ratio'],
+}
+
+
+@pytest.fixture(scope='module')
+def tiny(tmp_path_factory):
+    """One run of every section at tiny size: (exit code, latest.json, latest.md, out folder, stderr)."""
+    out = tmp_path_factory.mktemp('bench')
+    work = tmp_path_factory.mktemp('bench-work')
+    result = subprocess.run(
+        [sys.executable, '-m', 'bench.run', '--size', 'tiny', '--out', str(out), '--work', str(work)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    report = json.loads((out / 'latest.json').read_text()) if (out / 'latest.json').exists() else {}
+    text = (out / 'latest.md').read_text() if (out / 'latest.md').exists() else ''
+    return result.returncode, report, text, out, result.stdout + result.stderr
+
+
+def test_every_section_runs_at_tiny_size_and_reports_its_targets(tiny):
+    code, report, text, out, output = tiny
+    assert code == 0, output
+    assert list(report['sections']) == list(bench_run.SECTIONS), output
+    for name, entry in report['sections'].items():
+        assert 'error' not in entry, entry.get('error')
+        assert entry['size'] == 'tiny' and entry['markdown'].strip(), name
+        assert f"## {entry['title']}" in text
+        for plot in entry['plots']:
+            assert (out / plot).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n', plot
+        assert set(TARGETS.get(name, [])) <= set(entry['targets']), (name, entry['targets'])
+    for name, entry in report['targets'].items():
+        assert set(entry) >= {'value', 'target', 'met'}, name
+        value, limit = entry['value'], entry['target']
+        if value is None:
+            assert entry['met'] is False and entry.get('note'), name
+        else:
+            assert entry['met'] == (value <= limit if entry['at_most'] else value >= limit), name
+    assert '[1/8 wire' in output and '[8/8 fleet' in output  # the progress line
+
+
+def test_a_section_that_raises_is_reported_and_the_run_fails(monkeypatch, tmp_path):
+    broken = types.ModuleType('bench.planner')
+    broken.TITLE = 'Planner'
+    broken.run = lambda ctx: 1 / 0
+    monkeypatch.setitem(sys.modules, 'bench.planner', broken)
+    quiet = types.ModuleType('bench.vision')
+    quiet.run = lambda ctx: Section('vision', 'Vision', {'x': math.nan}, {'t': target(3.0, 5.0)}, 'text')
+    monkeypatch.setitem(sys.modules, 'bench.vision', quiet)
+
+    code = bench_run.main(['--size', 'tiny', '--only', 'vision', 'planner', '--out', str(tmp_path)])
+
+    assert code == 1
+    report = json.loads((tmp_path / 'latest.json').read_text())
+    assert 'ZeroDivisionError' in report['sections']['planner']['error']
+    assert report['sections']['vision']['results'] == {'x': None}  # NaN is not JSON
+    assert report['targets'] == {'t': {'value': 3.0, 'target': 5.0, 'met': True, 'at_most': True}}
+    assert 'This section failed' in (tmp_path / 'latest.md').read_text()
+
+
+def test_only_merges_into_the_earlier_results(monkeypatch, tmp_path):
+    for name, value in (('vision', 1.0), ('planner', 20.0)):
+        module = types.ModuleType(f'bench.{name}')
+        module.run = lambda ctx, name=name, value=value: Section(name, name, {}, {name: target(value, 2.0)})
+        monkeypatch.setitem(sys.modules, f'bench.{name}', module)
+    assert bench_run.main(['--size', 'tiny', '--only', 'vision', 'planner', '--out', str(tmp_path)]) == 0
+    assert bench_run.main(['--size', 'quick', '--only', 'planner', '--out', str(tmp_path)]) == 0
+    report = json.loads((tmp_path / 'latest.json').read_text())
+    assert {name: entry['size'] for name, entry in report['sections'].items()} == {
+        'vision': 'tiny',
+        'planner': 'quick',
+    }
+    assert (report['targets']['vision']['met'], report['targets']['planner']['met']) == (True, False)
+
+
+def test_the_readme_section_is_replaced_between_its_markers_only(tmp_path):
+    report = bench_run.merged(None, {'vision': {**_entry('Vision'), 'plots': ['vision-stages.png']}}, 'quick')
+    readme = tmp_path / 'README.md'
+    readme.write_text(f'# T\n\nbefore\n\n{bench_run.README_BEGIN}\nold\n{bench_run.README_END}\n\nafter\n')
+    bench_run.update_readme(report, readme)
+    text = readme.read_text()
+    assert text.startswith('# T\n\nbefore\n\n<!-- performance:begin -->') and text.endswith('\n\nafter\n')
+    assert 'old' not in text and '### Vision' in text and '### Targets' in text
+    assert '](bench/results/vision-stages.png)' in text
+    bench_run.update_readme(report, readme)
+    assert readme.read_text() == text
+
+
+def _entry(title):
+    return {
+        'title': title,
+        'results': {},
+        'targets': {},
+        'markdown': 'measured',
+        'plots': [],
+        'size': 'quick',
+        'seconds': 1.0,
+        'measured': 'now',
+    }
+
+
+def test_statistics_helpers():
+    assert percentile([3, 1, 2, 4], 50) == 2.5
+    assert percentile([1, 2, 3, 4, 5], 100) == 5
+    assert spread([1.0])['p99'] == 1.0
+    assert target(None, 5.0, note='not at this size')['met'] is False
+    assert target(12.0, 10.0, at_most=False)['met'] is True
+    ctx = Context('quick', REPO, REPO)
+    assert ctx.pick(1, 2, 3) == 2
