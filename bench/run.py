@@ -215,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
 
     names = args.only or list(SECTIONS)
     args.out.mkdir(parents=True, exist_ok=True)
+    latest = args.out / 'latest.json'
+    previous = json.loads(latest.read_text()) if args.only and latest.exists() else None
     work = args.work or Path(tempfile.mkdtemp(prefix='drvs-bench-'))
     work.mkdir(parents=True, exist_ok=True)
     progress = Progress(len(names))
@@ -225,23 +227,21 @@ def main(argv: list[str] | None = None) -> int:
             section_work = work / name
             section_work.mkdir(exist_ok=True)
             ctx = Context(args.size, args.out, section_work, progress)
-            sections[name] = run_section(name, ctx)
-            entry = sections[name]
+            sections[name] = entry = run_section(name, ctx)
             missed = [target for target, value in entry['targets'].items() if not value['met']]
-            verdict = 'FAILED' if entry.get('error') else f'{len(entry["targets"]) - len(missed)} targets met'
+            met = len(entry['targets']) - len(missed)
+            verdict = f'{met} of {len(entry["targets"])} targets met' if entry['targets'] else 'no targets'
+            if entry.get('error'):
+                verdict = 'FAILED'
             if missed:
                 verdict += f', missed: {", ".join(missed)}'
             progress.done(f'{entry["seconds"]} s, {verdict}')
+            # Written after every section: an interrupted run keeps what it measured.
+            report = write(args, merged(previous, sections, args.size))
     finally:
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
 
-    latest = args.out / 'latest.json'
-    previous = json.loads(latest.read_text()) if args.only and latest.exists() else None
-    report = merged(previous, sections, args.size)
-    report = jsonable(report)
-    latest.write_text(json.dumps(report, indent=1, allow_nan=False) + '\n')
-    (args.out / 'latest.md').write_text(markdown(report))
     if args.readme:
         update_readme(report, REPO / 'README.md')
     failed = [name for name, entry in sections.items() if entry.get('error')]
@@ -249,6 +249,14 @@ def main(argv: list[str] | None = None) -> int:
     for name in failed:
         print(f'--- {name} ---\n{sections[name]["error"]}', file=sys.stderr)
     return 1 if failed else 0
+
+
+def write(args, report: dict) -> dict:
+    """latest.json and latest.md in ``args.out``; the report as written (JSON-able)."""
+    report = jsonable(report)
+    (args.out / 'latest.json').write_text(json.dumps(report, indent=1, allow_nan=False) + '\n')
+    (args.out / 'latest.md').write_text(markdown(report))
+    return report
 
 
 if __name__ == '__main__':
