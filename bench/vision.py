@@ -174,14 +174,6 @@ def colour_errors(frame, world, bodies: dict, region) -> dict:
 
 
 # -- apriltag ----------------------------------------------------------------------------------
-def tag_heights(world) -> dict[str, float]:
-    """{label: height} of the world's tags, as the vision system knows them (on top of their body)."""
-    return {
-        f'{body.tag.family}:{body.tag.id}': float(body.size[2])
-        for robot in world.robots
-        for body in (robot.body, robot.station)
-        if body.tag is not None
-    }
 
 
 def apriltag(ctx: Context, resolutions, repeats: int, renders: int) -> tuple[dict, dict]:
@@ -189,7 +181,7 @@ def apriltag(ctx: Context, resolutions, repeats: int, renders: int) -> tuple[dic
     sees it whole) on the tags world."""
     world = load_world(TAG_WORLD)
     region = (0.0, 0.0, *world.floor_size)
-    algorithm = parse_algorithm('apriltag:tag36h11', load_algorithms(tag_heights=tag_heights(world)))
+    algorithm = parse_algorithm('apriltag:tag36h11', load_algorithms(tag_heights=world.tag_heights()))
     views = {'vs2': world.robot, 'vs1': world.station}
     timings, errors = {}, {}
     with Scene(world) as scene:

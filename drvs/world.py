@@ -237,6 +237,15 @@ class World:
     def colour_models(self) -> dict[str, str]:
         return self.robots[0].colour_models
 
+    def tag_heights(self) -> dict[str, float]:
+        """{"FAMILY:ID": height} of the tags on top of the robots and stations."""
+        return {
+            f'{body.tag.family}:{body.tag.id}': float(body.size[2])
+            for robot in self.robots
+            for body in (robot.body, robot.station)
+            if body.tag is not None
+        }
+
     def fleet_robot(self, name: str) -> FleetRobot:
         for robot in self.robots:
             if robot.name == name:

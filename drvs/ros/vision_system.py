@@ -379,7 +379,7 @@ class VisionSystemNode:
         if params.source == 'render':
             world = load_world(params.world)
             self.source = RenderSource(world, world.camera(params.camera), params, self._count)
-            tag_heights = _tag_heights(world)
+            tag_heights = world.tag_heights()
         else:
             self.source = TopicSource(params, self._count)
         self.algorithms = load_algorithms(params.min_area, params.epsilon, params.tag_height, tag_heights)
@@ -899,13 +899,3 @@ def _moved(old, new, threshold: float) -> bool:
     if not new:
         return False
     return float(np.max(np.abs(np.asarray(old) - np.asarray(new)))) > threshold
-
-
-def _tag_heights(world) -> dict[str, float]:
-    """{"FAMILY:ID": height} of the tags the world file puts on top of its robots and stations."""
-    return {
-        f'{body.tag.family}:{body.tag.id}': float(body.size[2])
-        for robot in world.robots
-        for body in (robot.body, robot.station)
-        if body.tag is not None
-    }
