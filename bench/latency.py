@@ -248,7 +248,7 @@ STEPS = {  # process -> (what, whose, steps timed, steps subtracted); "…": a p
             ['drvs.ros.vision_system:FrameDetections.on_floor'],
             [],
         ),
-        ('… clip them to the region (GEOS)', 'DRVS', ['drvs.ros.vision_system:in_region'], []),
+        ('… clip them to the region', 'DRVS', ['drvs.ros.vision_system:in_region'], []),
         (
             '… call back: build, send, read the reply',
             'DRVS',
@@ -424,7 +424,7 @@ def explanation(profile: dict) -> str:
     echo = sum(row['cpu_us'] or 0.0 for row in profile['rows'] if row['process'] == 'echo')
     checks = cpu('server', '… handle_detect: checks, match, queue')
     vision_checks = cpu('vision', '… _handle_detect: checks, queue')
-    clip = cpu('vision', '… clip them to the region (GEOS)')
+    clip = cpu('vision', '… clip them to the region')
     call_back = cpu('vision', '… call back: build, send, read the reply')
     text = [
         'The robot runs on a CPU of its own, the server, echo and vision systems on the other(s):',
@@ -439,9 +439,9 @@ def explanation(profile: dict) -> str:
         "and the vision system's own work, all of it Python:",
         f'its checks ({vision_checks}),',
         'a hand-over from its request thread to its worker,',
-        'clipping the objects (found once per frame) to the region with GEOS',
-        f'({clip}: `drvs.vision.in_region` intersects',
-        'even an object that lies wholly inside the region; a bounds check first would skip it),',
+        'clipping the objects (found once per frame) to the region',
+        f'({clip}: `drvs.vision.in_region` compares bounds worked out once per frame, and',
+        "only an object that straddles the region's edge goes to GEOS),",
         f'and building, sending and reading the callback ({call_back};',
         'genpy messages built field by field in `drvs.ros.conversions`).',
         "What stays is rospy's part of every call on both sides — a thread per connection,",

@@ -25,6 +25,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -36,6 +37,24 @@ from drvs.scene import Frame
 log = logging.getLogger('rosout.' + __name__)
 
 Outline = list[tuple[float, float]]
+
+
+class FloorObject(NamedTuple):
+    """An object an algorithm found, on the floor (:func:`project_objects`).
+
+    ``bounds`` and ``outline`` are worked out once per frame, not once per request
+    that clips it (:func:`in_region`): shapely 1.8 takes about 18 µs for ``bounds``.
+    """
+
+    shape: Polygon
+    ordered: list | None  # the corners in their own order (a tag, corner 0 first), or None
+    label: str
+    bounds: tuple[float, float, float, float]  # min_x, min_y, max_x, max_y
+    outline: Outline  # the whole object as reported: ``ordered``, or ring(shape)
+
+    @classmethod
+    def of(cls, shape: Polygon, ordered: list | None, label: str) -> FloorObject:
+        return cls(shape, ordered, label, shape.bounds, ordered if ordered is not None else ring(shape))
 
 
 def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
@@ -138,9 +157,9 @@ def ring(shape: Polygon) -> Outline:
     return coords[:-1]
 
 
-def on_floor(frame: Frame, algorithm) -> list[tuple[Polygon, list | None, str]]:
+def on_floor(frame: Frame, algorithm) -> list[FloorObject]:
     """Every object ``algorithm`` (a :class:`drvs.algorithms.Parsed`) finds in ``frame``, on the
-    floor: (floor shape, ordered points or None, label). Whatever the region asked for, so that
+    floor. Whatever the region asked for, so that
     several requests with one algorithm on one frame detect once (:func:`in_region` clips).
 
     Two stages: the algorithm segments the image (pixel outlines), then
@@ -148,7 +167,7 @@ def on_floor(frame: Frame, algorithm) -> list[tuple[Polygon, list | None, str]]:
     return project_objects(frame, algorithm.detect(frame))
 
 
-def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[tuple[Polygon, list | None, str]]:
+def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[FloorObject]:
     """The objects an algorithm found in ``frame`` (pixel outlines) on the floor, as :func:`on_floor`
     gives them."""
     found = []
@@ -157,15 +176,15 @@ def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[tupl
             points = floor_points(frame, pixel_object)
             if len(points) == len(pixel_object.outline):
                 corners = [(float(x), float(y)) for x, y, _ in points]
-                found.append((Polygon(corners), corners, pixel_object.label))
+                found.append(FloorObject.of(Polygon(corners), corners, pixel_object.label))
             continue
         for floor_shape in project_outline(frame, pixel_object):
-            found.append((floor_shape, None, pixel_object.label))
+            found.append(FloorObject.of(floor_shape, None, pixel_object.label))
     return found
 
 
 def in_region(
-    objects: list[tuple[Polygon, list | None, str]], region_of_interest: tuple[float, float, float, float]
+    objects: list[FloorObject], region_of_interest: tuple[float, float, float, float]
 ) -> list[tuple[Outline, str]]:
     """(outline, label) of each of :func:`on_floor`'s ``objects`` that intersects
     ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
@@ -173,21 +192,23 @@ def in_region(
     An object whose vertex order means something (a tag, corner 0 first) is reported
     whole, in its own order, when it intersects the region.
     """
-    region = box(*region_of_interest)
     low_x, low_y, high_x, high_y = region_of_interest
+    region = None
     found = []
-    for shape, ordered, label in objects:
+    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline in objects:
         # Bounds first: an object wholly outside or wholly inside the region needs no GEOS
         # operation (the intersection was most of a one-camera request's time).
-        min_x, min_y, max_x, max_y = shape.bounds
         if max_x < low_x or min_x > high_x or max_y < low_y or min_y > high_y:
             continue
-        inside = low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y
-        if ordered is not None:
-            if inside or shape.intersects(region):
-                found.append((ordered, label))
+        if low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y:
+            found.append((outline, label))
             continue
-        for part in _polygons(shape if inside else shape.intersection(region)):
+        region = region or box(*region_of_interest)
+        if ordered is not None:
+            if shape.intersects(region):
+                found.append((outline, label))
+            continue
+        for part in _polygons(shape.intersection(region)):
             found.append((ring(part), label))
     return found
 
