@@ -162,7 +162,7 @@ def warmup(ctx: Context) -> int:
 
 def run(ctx: Context) -> Section:
     counts = ctx.pick((1,), (1, 2, 10), (1, 2, 10, 50))
-    rounds = ctx.pick(20, 150, 1000)
+    rounds = ctx.pick(20, 100, 1000)
     world = write_world(ctx.work_dir / 'latency-world.yaml', max(counts))
     sizes = {}
     with RosHarness() as ros:

@@ -241,7 +241,7 @@ def run(ctx: Context) -> Section:
         ctx.progress('link: the crossing scenario, robot1 on 2 Mbit/s')
         drvs = drvs_side(ctx, timeout=ctx.pick(0, 90, 120))
     section.results['drvs'] = drvs
-    warmup, window = ctx.pick(0.5, 2.0, 5.0), ctx.pick(1.5, 6.0, 30.0)
+    warmup, window = ctx.pick(0.5, 1.5, 5.0), ctx.pick(1.5, 4.0, 30.0)
     streamed = ctx.pick(cameras[:1], cameras, cameras)  # tiny: one camera, to be quick
     images = {}
     for kind in ctx.pick(('photo',), ('photo',), ('photo', 'rendered')):
@@ -343,7 +343,8 @@ def markdown(ctx: Context, cameras: list[str], drvs: dict, images: dict) -> str:
         'the robot gets a fraction of the frames, each late by the frames queued ahead of it in '
         "the publishers' connections. DRVS receives a few percent of it. What the DRVS robot "
         f'sends is mostly not DRVS: its map (nav_msgs/OccupancyGrid, {map_bytes(WORLD) / 1000:.0f} kB, '
-        'published at each change) and path topics, to which the scenario recorder subscribes.\n\n'
+        'at most once a second while it changes: `~map_period`; each change, before it, took '
+        '19-30 % of the link) and path topics, to which the scenario recorder subscribes.\n\n'
     )
     text += f'Again: `make bench` or `.venv/bin/python -m bench.run --only {NAME} --size quick` (root).\n'
     return text

@@ -175,3 +175,35 @@ class ObstacleMemory:
         for source in [s for s, (until, _) in self._sources.items() if now > until]:
             del self._sources[source]
         return {source: outlines for source, (_, outlines) in self._sources.items()}
+
+
+class MapPublishing:
+    """When the robot publishes its map: at most once per ``period`` while the map changes, a
+    change inside a period at the first update after it ends, and every ``refresh`` seconds
+    whatever happens (a late subscriber of a latched topic needs nothing, a recorder does).
+
+    The whole grid goes out each time (a byte a cell: 61,600 B in the 4.2 world): on a robot's
+    2 Mbit/s link, a map per change took 19-30 % of it. ``period`` 0 publishes every change.
+
+    >>> publishing = MapPublishing(period=1.0, refresh=5.0)
+    >>> calls = ((0.0, True), (0.4, True), (0.8, False), (1.1, False))
+    >>> [publishing.due(now, changed) for now, changed in calls]
+    [True, False, False, True]
+    >>> publishing.due(2.5, False), publishing.due(6.2, False)
+    (False, True)
+    """
+
+    def __init__(self, period: float, refresh: float = 5.0):
+        self.period = period
+        self.refresh = refresh
+        self._last = -math.inf
+        self._pending = False
+
+    def due(self, now: float, changed: bool) -> bool:
+        """Whether to publish now; ``changed``: the map changed since the last call."""
+        self._pending = self._pending or changed
+        since = now - self._last
+        if (self._pending and since >= self.period) or since >= self.refresh:
+            self._last, self._pending = now, False
+            return True
+        return False

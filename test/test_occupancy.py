@@ -1,15 +1,19 @@
 """Occupancy grid: rasterising outlines, inflation, changed-cell diffs, TTL memory, margin crossing."""
 
+import doctest
+
 import numpy as np
 import pytest
 from shapely.geometry import Point, box
 
+from drvs import occupancy
 from drvs.dstar_lite import FREE, DStarLite
 from drvs.occupancy import (
     INFLATED,
     LETHAL,
     CostGrid,
     GridSpec,
+    MapPublishing,
     ObstacleMemory,
     OccupancyError,
     crosses_margin,
@@ -125,3 +129,25 @@ def test_bad_settings_are_refused(make, message):
     with pytest.raises(OccupancyError) as error:
         make()
     assert str(error.value) == message
+
+
+def test_map_publishing_coalesces_changes_within_a_period_and_refreshes():
+    publishing = MapPublishing(period=1.0, refresh=5.0)
+    assert publishing.due(0.0, changed=True)  # the first change goes out at once
+    assert not publishing.due(0.3, changed=True)  # inside the period: held...
+    assert not publishing.due(0.9, changed=False)
+    assert publishing.due(1.0, changed=False)  # ...and sent once the period is over
+    assert not publishing.due(2.5, changed=False)  # nothing new: nothing sent
+    assert publishing.due(6.0, changed=False)  # but a refresh every 5 s
+    assert publishing.due(7.1, changed=True)
+
+
+def test_map_publishing_with_period_zero_sends_every_change():
+    publishing = MapPublishing(period=0.0)
+    assert [publishing.due(t, True) for t in (0.0, 0.0, 0.1)] == [True, True, True]
+    assert not publishing.due(0.2, changed=False)
+
+
+def test_map_publishing_doctest():
+    result = doctest.testmod(occupancy)
+    assert result.failed == 0 and result.attempted >= 2

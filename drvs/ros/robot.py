@@ -125,7 +125,7 @@ from drvs.controller import ARRIVED, ARRIVING, FAILED, FINAL_STATES, Controller,
 from drvs.guard import RESTART, SHUTDOWN, LoopGuard
 from drvs.health import Health, robot_health
 from drvs.msg import RobotStatus
-from drvs.occupancy import CostGrid, GridSpec, ObstacleMemory
+from drvs.occupancy import CostGrid, GridSpec, MapPublishing, ObstacleMemory
 from drvs.perception import (
     LOCALISATION_ROLES,
     STATIC_ROLES,
@@ -253,6 +253,13 @@ class RobotParams(Settings):
         'a repaired plan straying further from the old route counts as a re-plan',
         unit='m',
         check=POSITIVE,
+    )
+    map_period: float = param(
+        1.0,
+        'at most one `~map` per period while the map changes (it is the whole grid, a byte a cell); '
+        '0: one per change. Unchanged, it is published every 5 s',
+        unit='s',
+        check=NON_NEGATIVE,
     )
     station_period: float = param(
         2.0,
@@ -408,7 +415,7 @@ class BlindRobot:
         self._done = threading.Event()
         self._stop = threading.Event()
         self._last_path: list | None = None
-        self._last_map_publish = -math.inf
+        self._map_publishing = MapPublishing(params.map_period)
         self._client: ServiceClient | None = None
         self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stop)
         self.diagnostics = DiagnosticsPublisher(
@@ -745,9 +752,8 @@ class BlindRobot:
         changes = self.grid.apply(objects)
         if changes:
             self.controller.on_map_changed(changes)
-            self._publish_map(now)
-        elif now - self._last_map_publish > 5.0:
-            self._publish_map(now)
+        if self._map_publishing.due(now, bool(changes)):
+            self._publish_map()
 
     # -- publications ----------------------------------------------------------------------
     def health(self) -> Health:
@@ -817,8 +823,7 @@ class BlindRobot:
             msg.poses.append(pose)
         return msg
 
-    def _publish_map(self, now: float) -> None:
-        self._last_map_publish = now
+    def _publish_map(self) -> None:
         spec = self.grid.spec
         msg = OccupancyGrid()
         msg.header.frame_id = 'map'
