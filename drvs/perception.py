@@ -69,6 +69,11 @@ from shapely.ops import unary_union
 ROLES = ('self', 'station', 'obstacle', 'human')
 """The roles every robot has a model for; a world may add others (``robot``), all obstacles."""
 LOCALISATION_ROLES = ('self', 'station')
+FLEET_ROLE = 'robot'
+"""The role whose model finds every robot of a fleet, this one too (:func:`cut_bodies`)."""
+MIN_PIECE = 0.01
+"""m²: what is left of an outline once the robot's own body is cut out, smaller than this, is
+noise (the edge of its own blob in a frame older than its fix), not another body."""
 STATIC_ROLES = ('obstacle',)
 """Obstacle roles whose objects stand still; the others (``human``, ``robot``) move."""
 WATCH = 0
@@ -205,6 +210,31 @@ def exclude_bodies(outlines: Iterable[Polygon], bodies: Iterable[Polygon], fract
         for outline in outlines
         if not any(outline.intersection(body).area > fraction * outline.area for body in bodies)
     ]
+
+
+def cut_bodies(outlines: Iterable[Polygon], bodies: Iterable[Polygon], min_area: float = MIN_PIECE) -> list:
+    """Outlines with ``bodies`` cut out; pieces smaller than ``min_area`` dropped.
+
+    For the fleet's ``robot`` model, which finds this robot too: two robots that
+    touch are one blob in a camera's image, and :func:`exclude_bodies` would drop
+    that blob whole when this robot's body covers most of it, so neither robot
+    would see the other and both would drive on into it (the warehouse deadlock).
+    Cutting keeps the other robot's part.
+    """
+    bodies = [b for b in bodies if b is not None and not b.is_empty]
+    if not bodies:
+        return list(outlines)
+    cut = unary_union(bodies)
+    pieces = []
+    for outline in outlines:
+        if not outline.intersects(cut):
+            pieces.append(outline)
+            continue
+        left = outline.difference(cut)
+        for part in getattr(left, 'geoms', [left]):
+            if part.geom_type == 'Polygon' and part.area >= min_area:
+                pieces.append(part)
+    return pieces
 
 
 class RequestBook:

@@ -11,6 +11,7 @@ from drvs.perception import (
     PerceptionError,
     Region,
     RegionPolicy,
+    cut_bodies,
     exclude_bodies,
     merge_outlines,
     spanned,
@@ -148,6 +149,24 @@ def test_the_robot_and_station_are_never_obstacles():
     outlines = [box(0.01, 0, 0.31, 0.3), box(5, 5, 5.4, 5.3), box(1, 1, 2, 2), box(0.25, 0, 0.6, 0.3)]
     kept = exclude_bodies(outlines, [robot, station])
     assert kept == [outlines[2], outlines[3]]  # the one only touching the robot stays
+
+
+def test_a_touching_robot_stays_an_obstacle_when_the_fleet_model_merges_it_with_this_one():
+    me, other = box(0, 0, 0.3, 0.3), box(0.3, 0, 0.6, 0.3)  # touching: one blob in the image
+    blob = merge_outlines([me, other])[0]
+    trail = box(0, 0, 0.3, 0.3).buffer(0.1)  # where this robot stood lately, with a margin
+    assert exclude_bodies([blob], [me, trail]) == []  # dropped whole: the other robot unseen
+    (left,) = cut_bodies([blob], [me, trail])
+    assert left.area == pytest.approx(other.difference(trail).area)  # the other robot, but for the margin
+    assert left.within(other)
+    assert not left.intersects(me)
+
+
+def test_cut_bodies_keeps_untouched_outlines_and_drops_slivers():
+    me = box(0, 0, 0.3, 0.3)
+    far, edge = box(2, 2, 2.3, 2.3), box(0.0, 0.0, 0.33, 0.3)  # edge: my own blob, 3 cm off
+    assert cut_bodies([far, edge], [me]) == [far]  # 0.009 m² of my own edge is not a body
+    assert cut_bodies([far], []) == [far]
 
 
 def test_roi_policy():

@@ -127,11 +127,13 @@ from drvs.health import Health, robot_health
 from drvs.msg import RobotStatus
 from drvs.occupancy import CostGrid, GridSpec, MapPublishing, ObstacleMemory
 from drvs.perception import (
+    FLEET_ROLE,
     LOCALISATION_ROLES,
     STATIC_ROLES,
     Perception,
     PerceptionError,
     RegionPolicy,
+    cut_bodies,
     exclude_bodies,
     merge_outlines,
     whole_floor,
@@ -736,10 +738,6 @@ class BlindRobot:
         return self._trail_shape
 
     def _update_map(self, now: float, sources, fix, station) -> None:
-        objects = []
-        for role in self.perception.obstacle_roles:
-            merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
-            objects.extend(merged)
         bodies = [f.outline for f in (fix, station) if f is not None]
         if fix is not None and fix.heading is not None:
             # A tag is smaller than the robot: its own body, where the tag says, is not an obstacle
@@ -747,7 +745,14 @@ class BlindRobot:
             body = Polygon(box_footprint(fix.position, self.robot_size, fix.heading)).buffer(BODY_MARGIN)
             bodies.append(body)
         bodies.append(self._own_trail(now, fix))
-        objects = exclude_bodies(objects, bodies)
+        objects = []
+        for role in self.perception.obstacle_roles:
+            merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
+            # The fleet's model finds this robot too, as one blob with another robot it touches:
+            # its own body is cut out of those blobs, not the blob dropped.
+            objects.extend(
+                cut_bodies(merged, bodies) if role == FLEET_ROLE else exclude_bodies(merged, bodies)
+            )
         self._obstacles = len(objects)
         changes = self.grid.apply(objects)
         if changes:
