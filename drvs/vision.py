@@ -203,7 +203,8 @@ def in_region(
         if low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y:
             found.append((outline, label))
             continue
-        region = region or box(*region_of_interest)
+        if region is None:
+            region = box(*region_of_interest)
         if ordered is not None:
             if shape.intersects(region):
                 found.append((outline, label))
