@@ -35,6 +35,7 @@ Cells are ``(row, col)`` pairs; internally a flat index ``row * cols + col``.
 from __future__ import annotations
 
 import array
+import copy
 import heapq
 import itertools
 import math
@@ -95,6 +96,13 @@ class _Queue:
     def remove(self, vertex: int) -> None:
         self._key.pop(vertex, None)
 
+    def copy(self) -> _Queue:
+        """An independent queue whose new entries order among themselves and the old ones as here."""
+        twin = _Queue()
+        twin._heap, twin._key = list(self._heap), dict(self._key)
+        twin._tie = itertools.count(max((entry[2] for entry in self._heap), default=-1) + 1)
+        return twin
+
     def _clean(self) -> None:
         heap = self._heap
         while heap:
@@ -129,8 +137,6 @@ class DStarLite:
         # shared objects stay in the CPU's cache where one object per cell would not.
         self._costs_seen: dict[float, float] = {}
         self._cost: list[float] = [self._costs_seen.setdefault(v, v) for v in costs.ravel().tolist()]
-        # The same costs for numpy (see _update_box), with a border of 2 impassable cells.
-        self._cost_array = np.pad(costs, 2, constant_values=INF)
         finite = costs[np.isfinite(costs)]
         self._integral = bool((finite == np.floor(finite)).all())  # integral costs so far
         self._goal = self._index(goal, 'goal')
@@ -145,6 +151,19 @@ class DStarLite:
         self.rhs[self._goal] = 0
         self.queue.push(self._goal, self.calculate_key(self._goal))
         self._neighbours = self._neighbour_table()
+
+    def copy(self) -> DStarLite:
+        """An independent planner in the same state (costs, start, g, rhs, queue, km).
+
+        The neighbour table, which never changes, is shared. The copy plans exactly
+        as this planner would: its queue breaks ties between equal keys in the same
+        order. For trying a change without committing to it, and for benchmarks.
+        """
+        twin = copy.copy(self)
+        twin._cost, twin._costs_seen = list(self._cost), dict(self._costs_seen)
+        twin.g, twin.rhs = list(self.g), list(self.rhs)
+        twin.queue = self.queue.copy()
+        return twin
 
     # -- grid helpers ----------------------------------------------------------------------
     def _index(self, cell: Cell, what: str) -> int:
@@ -300,18 +319,21 @@ class DStarLite:
                 cost_u = cost[u]
                 for s, step, side1, side2 in neighbours[u]:
                     rs = rhs[s]
-                    if rs > step + ru:
-                        c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
-                        if c != INF:
-                            value = (step if c == FREE else round(step * c)) + ru
-                            if value < rs:
-                                rhs[s] = rs = value
+                    if rs <= step + ru:
+                        continue
+                    c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
+                    if c == INF:
+                        continue
+                    value = (step if c == FREE else round(step * c)) + ru
+                    if value >= rs:
+                        continue  # rhs(s) stands, so does s's place in the queue
+                    rhs[s] = value
                     gs = g[s]  # update_vertex(s), written out: this loop is the search's hottest
-                    if gs == rs:
+                    if gs == value:
                         if s in keys:
                             del keys[s]
                         continue
-                    m = gs if gs < rs else rs
+                    m = gs if gs < value else value
                     row, col = divmod(s, cols)
                     dr, dc = abs(row - start_row), abs(col - start_col)
                     h = (
@@ -332,16 +354,21 @@ class DStarLite:
                 cost_u = cost[u]
                 for s, step, side1, side2 in neighbours[u]:
                     rs = rhs[s]
-                    if rs >= step + gu:
-                        c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
-                        if c != INF and rs == (step if c == FREE else round(step * c)) + gu:
-                            rhs[s] = rs = best_successor_cost(s)
+                    if rs < step + gu:
+                        continue
+                    c = max(cost_u, cost[side1], cost[side2]) if side1 >= 0 else cost_u
+                    if c == INF or rs != (step if c == FREE else round(step * c)) + gu:
+                        continue
+                    value = best_successor_cost(s)
+                    if value == rs:
+                        continue  # another successor offers the same: s stands
+                    rhs[s] = value
                     gs = g[s]  # update_vertex(s), written out
-                    if gs == rs:
+                    if gs == value:
                         if s in keys:
                             del keys[s]
                         continue
-                    m = gs if gs < rs else rs
+                    m = gs if gs < value else value
                     row, col = divmod(s, cols)
                     dr, dc = abs(row - start_row), abs(col - start_col)
                     h = (
@@ -369,14 +396,19 @@ class DStarLite:
 
         A cell's cost enters every edge into it and every diagonal edge beside it;
         all of those start at the cell or one of its neighbours, so those are the
-        vertices whose ``rhs`` is recomputed (``g`` does not change here). Each of
-        them whose ``rhs`` changed, or that is inconsistent (queued: its key is
-        brought up to date), goes through ``update_vertex``; for the others it
-        would do nothing. Call :meth:`compute_shortest_path` next. A bad change
-        raises :class:`PlanningError`; the changes before it are applied.
+        vertices whose ``rhs`` is recomputed (``g`` does not change here), and
+        those whose ``rhs`` changed go through ``update_vertex``. An edge counts in
+        its source's ``rhs`` only through ``g`` of its target, and the edges a
+        cell's cost enters end at the cell or at one of its four straight
+        neighbours: a change where all of those have ``g = inf`` (far from the
+        search so far) needs nothing more than the new cost. Call
+        :meth:`compute_shortest_path` next. A bad change raises
+        :class:`PlanningError`; the changes before it are applied.
         """
-        indices: list[int] = []
-        own, seen, rows, cols = self._cost, self._costs_seen, self.rows, self.cols
+        count = 0
+        relevant: list[int] = []  # changed cells near the search
+        own, seen, g, rows, cols = self._cost, self._costs_seen, self.g, self.rows, self.cols
+        last_row, last_col = rows - 1, cols - 1
         try:
             for cell, cost in changes:
                 row, col = int(cell[0]), int(cell[1])
@@ -386,21 +418,29 @@ class DStarLite:
                 cost = float(cost)
                 if not cost >= FREE:  # NaN too
                     raise PlanningError(f'cell {tuple(cell)}: cost must be >= 1 or inf, got {cost}')
-                if own[index] != cost:
+                if own[index] == cost:
+                    continue
+                if cost in seen:
+                    cost = seen[cost]
+                else:
                     if len(seen) < 256:
-                        cost = seen.setdefault(cost, cost)
-                    own[index] = cost
-                    indices.append(index)
+                        seen[cost] = cost
+                    if cost != INF and not cost.is_integer():
+                        self._integral = False
+                own[index] = cost
+                count += 1
+                if (
+                    g[index] != INF
+                    or (row and g[index - cols] != INF)
+                    or (row < last_row and g[index + cols] != INF)
+                    or (col and g[index - 1] != INF)
+                    or (col < last_col and g[index + 1] != INF)
+                ):
+                    relevant.append(index)
         finally:
-            if indices:
-                r, c = np.divmod(np.array(indices), cols)
-                new = np.array([own[index] for index in indices])
-                self._cost_array[r + 2, c + 2] = new
-                if self._integral and not (np.floor(new) == new).all():
-                    self._integral = False
-                if len(indices) < BATCH_MIN_CELLS or not self._update_box(r, c):
-                    self._update_each(indices)
-        return len(indices)
+            if relevant and (len(relevant) < BATCH_MIN_CELLS or not self._update_box(relevant)):
+                self._update_each(relevant)
+        return count
 
     def _update_each(self, indices: list[int]) -> None:
         """:meth:`update_cells`' repair, one vertex at a time (few or scattered changes)."""
@@ -408,16 +448,35 @@ class DStarLite:
         touched = set(indices)
         for index in indices:
             touched.update([entry[0] for entry in neighbours[index]])
+        touched.discard(self._goal)  # rhs(goal) stays 0
         update_vertex, best_successor_cost = self._procedures()
-        rhs, goal = self.rhs, self._goal
+        rhs = self.rhs
         for u in touched:
-            if u != goal:
-                rhs[u] = best_successor_cost(u)
-            update_vertex(u)
+            value = best_successor_cost(u)
+            if value != rhs[u]:
+                rhs[u] = value
+                update_vertex(u)
 
-    def _update_box(self, r: np.ndarray, c: np.ndarray) -> bool:
-        """:meth:`update_cells`' repair with numpy over the box around the changed cells (rows ``r``,
-        columns ``c``).
+    def _window(self, values: list, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Rows ``r0:r1`` and columns ``c0:c1`` of a per-vertex list as a float array, inf off the grid.
+
+        Lists become arrays fastest through array.array; integers above 2**53 lose
+        precision here (:meth:`_update_box` checks for them).
+        """
+        cols = self.cols
+        top, bottom, left, right = max(r0, 0), min(r1, self.rows), max(c0, 0), min(c1, cols)
+        flat: list = []
+        for row in range(top * cols, bottom * cols, cols):
+            flat += values[row + left : row + right]
+        window = np.frombuffer(array.array('d', flat)).reshape(bottom - top, right - left)
+        if (top, bottom, left, right) == (r0, r1, c0, c1):
+            return window
+        full = np.full((r1 - r0, c1 - c0), INF)  # at the grid's edge
+        full[top - r0 : bottom - r0, left - c0 : right - c0] = window
+        return full
+
+    def _update_box(self, indices: list[int]) -> bool:
+        """:meth:`update_cells`' repair with numpy over the box around the changed cells ``indices``.
 
         A map change is usually one compact blob (an obstacle moved), whose few
         hundred vertices cost a microsecond or two each in Python. Here the ``rhs``
@@ -428,29 +487,16 @@ class DStarLite:
         than the change (scattered cells) or a value is too large to be exact; the
         caller then goes vertex by vertex.
         """
-        rows, cols = self.rows, self.cols
-        r0, c0 = int(r.min()) - 2, int(c.min()) - 2  # the box: the changed cells, their
-        r1, c1 = int(r.max()) + 3, int(c.max()) + 3  # neighbours and theirs; r1, c1 exclusive
+        cols = self.cols
+        r, c = np.divmod(np.array(indices), cols)
+        c_min, c_max = c.min(), c.max()
+        r0, c0 = min(indices) // cols - 2, int(c_min) - 2  # the box: the changed cells, their
+        r1, c1 = max(indices) // cols + 3, int(c_max) + 3  # neighbours and theirs; r1, c1 exclusive
         height, width = r1 - r0, c1 - c0
-        if height * width > BOX_CELLS_PER_CHANGE * len(r) + 512:
+        if height * width > BOX_CELLS_PER_CHANGE * len(indices) + 512:
             return False
-        # The box's costs (the mirror has a border of 2 impassable cells), g and rhs (inf outside
-        # the grid). Lists become arrays fastest through array.array.
-        C = self._cost_array[r0 + 2 : r1 + 2, c0 + 2 : c1 + 2]
-        g, rhs = self.g, self.rhs
-        top, bottom, left, right = max(r0, 0), min(r1, rows), max(c0, 0), min(c1, cols)
-        g_box, rhs_box = [], []
-        for row in range(top * cols, bottom * cols, cols):
-            g_box += g[row + left : row + right]
-            rhs_box += rhs[row + left : row + right]
-        shape = (bottom - top, right - left)
-        G = np.frombuffer(array.array('d', g_box)).reshape(shape)
-        R = np.frombuffer(array.array('d', rhs_box)).reshape(shape)
-        if shape != (height, width):  # at the grid's edge
-            inside = (slice(top - r0, bottom - r0), slice(left - c0, right - c0))
-            G_inside, R_inside = G, R
-            G, R = np.full((height, width), INF), np.full((height, width), INF)
-            G[inside], R[inside] = G_inside, R_inside
+        C = self._window(self._cost, r0, r1, c0, c1)  # inf off the grid: no edge leaves it
+        G = self._window(self.g, r0, r1, c0, c1)
 
         def at(array, dr, dc):  # array[row + dr, col + dc] for the vertices (row, col) of the inner box
             return array[1 + dr : height - 1 + dr, 1 + dc : width - 1 + dc]
@@ -479,26 +525,29 @@ class DStarLite:
                 np.rint(value, out=value)
             value += at(G, dr, dc)
             np.minimum(best, value, out=best)
-        old = at(R, 0, 0)
+        old = self._window(self.rhs, r0 + 1, r1 - 1, c0 + 1, c1 - 1)
         both = np.concatenate((best, old))
         if ((both >= EXACT) & (both < INF)).any():
             return False
-        # The vertices to update: the changed cells and their neighbours (a 3x3 dilation)...
+        # The vertices to update: the changed cells and their neighbours (a 3x3 dilation), on the
+        # grid, but not the goal (its rhs stays 0)...
         changed = np.zeros((height, width), dtype=bool)
         changed[r - r0, c - c0] = True
         across = changed[:, :-2] | changed[:, 1:-1] | changed[:, 2:]
         touched = across[:-2] | across[1:-1] | across[2:]
-        if shape != (height, width):  # no vertex outside the grid (its "rhs" may be finite)
-            inside = np.zeros_like(touched)
-            inside[max(top - r0 - 1, 0) : bottom - r0 - 1, max(left - c0 - 1, 0) : right - c0 - 1] = True
-            touched &= inside
+        if r0 < -1 or c0 < -1 or r1 > self.rows + 1 or c1 > cols + 1:  # not off the grid
+            touched[: max(0, -1 - r0)] = False  # inner row i is grid row r0 + 1 + i
+            touched[self.rows - 1 - r0 :] = False
+            touched[:, : max(0, -1 - c0)] = False
+            touched[:, cols - 1 - c0 :] = False
         goal_row, goal_col = divmod(self._goal, cols)
         if r0 < goal_row < r1 - 1 and c0 < goal_col < c1 - 1:
-            best[goal_row - r0 - 1, goal_col - c0 - 1] = 0.0  # rhs(goal) stays 0
-        # ... whose rhs changed or that are inconsistent (queued); update_vertex does nothing to others.
-        select = touched & ((best != old) | (at(G, 0, 0) != best))
+            touched[goal_row - r0 - 1, goal_col - c0 - 1] = False
+        # ... whose rhs changed: the others keep their place in the queue (or out of it).
+        select = touched & (best != old)
         ys, xs = np.nonzero(select)
         vertices = ((ys + (r0 + 1)) * cols + (xs + (c0 + 1))).tolist()
+        rhs = self.rhs
         update_vertex = self._procedures()[0]
         for u, value in zip(vertices, best[select].tolist(), strict=True):
             rhs[u] = INF if value == INF else int(value)

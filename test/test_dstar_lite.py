@@ -370,3 +370,50 @@ def test_update_cells_in_bulk_matches_vertex_by_vertex_and_a_fresh_plan(run):
         assert path == fresh.path()
         for r, c in path[1:]:  # the start's own g may be left behind its rhs (Figure 4: rhs > g stops)
             assert bulk.g[r * cols + c] == distance[r * cols + c] == fresh.g[r * cols + c]
+
+
+def test_a_change_the_search_has_not_reached_needs_nothing_but_the_new_cost():
+    """Start and goal close together in one corner of a large open grid: the search never reaches
+    the far corner, so a blob of changes there leaves g, rhs and the queue as they were."""
+    costs = np.ones((60, 60))
+    planner = plan(costs, (2, 2), (2, 8))
+    far = [((r, c), INF) for r in range(50, 58) for c in range(50, 58)]
+    assert all(planner.g[r * 60 + c] == INF for (r, c), _ in far)  # the premise
+    g, rhs, keys = list(planner.g), list(planner.rhs), dict(planner.queue._key)
+    assert planner.update_cells(far) == len(far)
+    assert (planner.g, planner.rhs, planner.queue._key) == (g, rhs, keys)
+    assert planner.cost((53, 53)) == INF
+    # ... and a wall across the way does: the repaired plan is a fresh plan's
+    for r in range(0, 6):
+        costs[r, 5] = INF
+    planner.update_cells([((r, 5), INF) for r in range(0, 6)])
+    planner.compute_shortest_path()
+    costs[50:58, 50:58] = INF
+    assert (
+        planner.path_cost()
+        == plan(costs, (2, 2), (2, 8)).path_cost()
+        == pytest.approx(dijkstra(costs, (2, 2), (2, 8)))
+    )
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_a_copy_plans_exactly_as_the_original_and_apart_from_it(seed):
+    rng = np.random.default_rng(300 + seed)
+    costs = random_grid(rng, 40, 40, density=0.2, expensive=0.1)
+    start, goal = random_free_cell(rng, costs), random_free_cell(rng, costs)
+    planner = plan(costs, start, goal)
+    twin = planner.copy()
+    changes = [((int(rng.integers(40)), int(rng.integers(40))), INF) for _ in range(30)]
+    changes = [(cell, value) for cell, value in changes if cell not in (start, goal)]
+    for p in (planner, twin):
+        p.update_cells(changes)
+        p.compute_shortest_path()
+    assert (twin.g, twin.rhs, twin.queue._key, twin.expansions) == (
+        planner.g,
+        planner.rhs,
+        planner.queue._key,
+        planner.expansions,
+    )
+    assert twin.path() == planner.path()
+    twin.update_cells([(goal, INF)])  # the original does not see the copy's changes
+    assert planner.cost(goal) != INF and twin.cost(goal) == INF
