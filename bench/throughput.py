@@ -260,8 +260,11 @@ def explanation(summary: dict, cycles: int) -> str:
     """A few sentences on what the numbers say, and how to measure them again."""
     raw, one, five = summary['raw'], summary['fanout1'], summary['fanout5']
 
+    def cpu_sum(entry: dict, *names: str) -> float:
+        return sum(entry['cpu_us_per_unit'][name] or 0.0 for name in names)
+
     def cpu(entry: dict, *names: str) -> str:
-        return f'{sum(entry["cpu_us_per_unit"][name] or 0.0 for name in names):.0f} µs'
+        return f'{cpu_sum(entry, *names):.0f} µs'
 
     forward = ('clients', 'server', 'fakes')
     text = [
@@ -282,6 +285,14 @@ def explanation(summary: dict, cycles: int) -> str:
         "What is left per forward is rospy's (a thread per connection, a `setblocking` and a `recv`",
         "system call per message, genpy) and ours (checks, match, queue, the forward's send and read):",
         'see the step timings of the latency section.',
+        f'Two plain calls cost {cpu_sum(raw, "clients", "echo") * 2:.0f} µs and a forward',
+        f'{cpu_sum(one, *forward):.0f} µs: the',
+        f'{cpu_sum(one, *forward) - 2 * cpu_sum(raw, "clients", "echo"):.0f} µs between them are',
+        "DRVS's own work per request (the server's checks, registry match and queue, timed in the",
+        'latency section) and its extra hand-overs between threads. Were they free, fan-out 1 would',
+        'reach the mark of one half; the mark itself is the cost of two rospy calls in Python.',
+        'What would remove the rest: a server in C++ (roscpp), where the per-call work that dominates',
+        'here, on both sides of both calls, is compiled.',
         'Reproduce: `make bench`, or `.venv/bin/python -m bench.run --only throughput`',
         '(`--size quick` for the short run).',
     ]
