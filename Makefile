@@ -36,9 +36,10 @@ soak: setup
 	$(PY) scripts/reliability_report.py --soak --slow-log $(SOAK_LOG) $(PYTEST_ARGS) && exit $$status
 
 # The benchmarks (bench/, issue 16): bench/results/latest.md, latest.json, the plots, and
-# README.md's Performance section. QUICK=1: small sizes, about 2 minutes. BENCH_ARGS='--only wire'.
+# README.md's Performance section. QUICK=1: small sizes, about 2 minutes, into bench/results/quick/
+# (the full results and README stay as they are). BENCH_ARGS='--only wire'.
 bench: setup
-	$(PY) -m bench.run --size $(if $(QUICK),quick,full) --readme $(BENCH_ARGS)
+	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --readme) $(BENCH_ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check .
