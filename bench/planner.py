@@ -19,8 +19,9 @@ robot's cell:
 
 Both must give the same path cost, exactly (integer fixed-point costs); the
 section raises if they do not. Reported per resolution: vertex expansions and CPU
-time of both, the ratio A* / repair per event (its median at 0.05 m is the target),
-the same ratio with path extraction, and where the repair's time goes.
+time of both, each the fastest of :data:`REPEATS` runs, and the ratio A* / repair per event (its
+median at 0.05 m is the target; the first runs, cold, beside it), the same ratio with path
+extraction, and where the repair's time goes.
 (This replaces bench_dstar_lite.py, which compared the repair with D* Lite from
 scratch on random boxes.)
 """
@@ -255,7 +256,8 @@ def timed_repair(state: DStarLite, start, changes, planner: DStarLite) -> float:
 
 
 def touched(changes, spec: GridSpec) -> set[tuple[int, int]]:
-    """The vertices whose rhs ``DStarLite.update_cells`` recomputes: each changed cell and its neighbours."""
+    """Each changed cell and its neighbours: the vertices whose rhs a change may alter (``update_cells``
+    recomputes those near the search)."""
     return {
         (row + dr, col + dc)
         for (row, col), _ in changes

@@ -54,7 +54,7 @@ _MOVES = tuple(
 )
 EXACT = float(1 << 53)  # floating-point integers below this add exactly
 BATCH_MIN_CELLS = 16
-"""From this many changed cells on, :meth:`DStarLite.update_cells` recomputes with numpy."""
+"""From this many changed cells near the search on, :meth:`DStarLite.update_cells` recomputes with numpy."""
 BOX_CELLS_PER_CHANGE = 16
 """...as long as the box around the changes has at most this many cells per changed cell (+ 512)."""
 
@@ -489,9 +489,8 @@ class DStarLite:
         """
         cols = self.cols
         r, c = np.divmod(np.array(indices), cols)
-        c_min, c_max = c.min(), c.max()
-        r0, c0 = min(indices) // cols - 2, int(c_min) - 2  # the box: the changed cells, their
-        r1, c1 = max(indices) // cols + 3, int(c_max) + 3  # neighbours and theirs; r1, c1 exclusive
+        r0, c0 = int(r.min()) - 2, int(c.min()) - 2  # the box: the changed cells, their
+        r1, c1 = int(r.max()) + 3, int(c.max()) + 3  # neighbours and theirs; r1, c1 exclusive
         height, width = r1 - r0, c1 - c0
         if height * width > BOX_CELLS_PER_CHANGE * len(indices) + 512:
             return False
