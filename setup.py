@@ -13,7 +13,7 @@ import shutil
 import subprocess
 import sys
 
-from setuptools import setup
+from setuptools import find_packages, setup
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GENPY = '/usr/lib/genpy'
@@ -66,6 +66,6 @@ setup(
     name='drvs',
     version='0.1.0',
     description='Distributed Robotic Vision Service (ROS 1)',
-    packages=['drvs', 'drvs.msg', 'drvs.srv', 'drvs.ros', 'drvs.testing'],
+    packages=find_packages(include=['drvs', 'drvs.*']),
     python_requires='>=3.11',
 )

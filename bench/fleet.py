@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench.common import Context, Section, figure, save, table, target
+from drvs.sim.world_file import load_world
 from drvs.testing.harness import REPO, RosHarness, WaitTimeout
 from drvs.testing.netns import unavailable
-from drvs.world import load_world
 
 NAME = 'fleet'
 TITLE = 'Fleet: robot traffic with watches against polling'

@@ -37,10 +37,10 @@ import cv2
 
 from bench.common import Context, Section, figure, save, spread, table
 from bench.fleet import FIXTURE_NOT_A_MEASUREMENT, ROBOT_LINK, link_counters, run_to_arrival, scenario_options
-from drvs.camera import PinholeCamera
+from drvs.sim.world_file import load_world
 from drvs.testing.harness import REPO, RosHarness, read_json_lines, wait_for
 from drvs.testing.netns import NetworkHosts, unavailable
-from drvs.world import load_world
+from drvs.vision.camera import PinholeCamera
 
 NAME = 'link'
 TITLE = 'A robot on a 2 Mbit/s link: DRVS against image sharing'

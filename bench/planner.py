@@ -2,7 +2,7 @@
 
 The scenario is the paper's obstacles case study (``worlds/obstacles.yaml``,
 section 4.2): the floor, its two static boxes and the walker, on the blind
-robot's own grid (:class:`drvs.occupancy.CostGrid`, inflated by the robot's
+robot's own grid (:class:`drvs.robot.occupancy.CostGrid`, inflated by the robot's
 default radius, half its footprint's diagonal) at 0.05 m (the robot's default
 there) and 0.02 m. The robot follows its plan at its speed, one control tick
 (:data:`TICK`) at a time; the walker starts when the robot does and walks its
@@ -13,7 +13,7 @@ robot's cell:
 - D* Lite repair: ``set_start`` + ``update_cells`` + ``compute_shortest_path`` on the
   planner that has followed the run from the start (``path()`` timed apart);
 - A* from scratch on the changed grid (:func:`astar`: heapq, the same 8-connected
-  moves and fixed-point edge costs as :mod:`drvs.dstar_lite`, octile heuristic; its
+  moves and fixed-point edge costs as :mod:`drvs.robot.dstar_lite`, octile heuristic; its
   path from the parent links timed apart). Turning the grid into a flat list is not
   timed (in A*'s favour).
 
@@ -38,10 +38,10 @@ from pathlib import Path
 from shapely.geometry import Polygon, box
 
 from bench.common import Context, Section, figure, save, spread, table, target
-from drvs.dstar_lite import DIAGONAL, FREE, INF, SCALE, STRAIGHT, DStarLite, path_cost
-from drvs.occupancy import CostGrid, GridSpec
-from drvs.simulation import loop_of, position_on_loop
-from drvs.world import load_world
+from drvs.robot.dstar_lite import DIAGONAL, FREE, INF, SCALE, STRAIGHT, DStarLite, path_cost
+from drvs.robot.occupancy import CostGrid, GridSpec
+from drvs.sim.simulation import loop_of, position_on_loop
+from drvs.sim.world_file import load_world
 
 NAME = 'planner'
 TITLE = 'Planner: D* Lite repair against A* from scratch'
@@ -67,7 +67,7 @@ def astar(
 ) -> tuple[int | float, dict[int, int], int]:
     """A* from ``start`` to ``goal`` (flat indices) on a row-major list of cell costs.
 
-    The moves and edge costs are :mod:`drvs.dstar_lite`'s: entering a cell pays the
+    The moves and edge costs are :mod:`drvs.robot.dstar_lite`'s: entering a cell pays the
     step length (fixed point) times its cost; a diagonal step also pays the dearer
     of its two side cells and is impossible beside an impassable one; the start
     cell is never paid. The heuristic is the octile distance in the same units
@@ -149,7 +149,7 @@ def run_scenario(resolution: float, max_events: int, astar_every: int, progress,
     spec = GridSpec(world.floor_size, resolution)
     grid = CostGrid(spec, math.hypot(*robot.size[:2]) / 2)  # drvs.ros.robot's default radius
     half = walker.size[0] / 2, walker.size[1] / 2
-    walk = loop_of(walker.position, walker.waypoints)  # as world_sim walks it (drvs.simulation)
+    walk = loop_of(walker.position, walker.waypoints)  # as world_sim walks it (drvs.sim.simulation)
 
     def walker_box(elapsed):
         x, y = position_on_loop(walk, walker.speed, elapsed, walker.loop)

@@ -1,8 +1,8 @@
 """Registry: match, registration and move time from 10 to 1,000,000 registered fields of view.
 
 What is measured, for each size N, through the server's own path
-(:meth:`drvs.registry.Registry.register` with its validation, and
-:meth:`~drvs.registry.Registry.match` with the region's) on a registry built as
+(:meth:`drvs.server.registry.Registry.register` with its validation, and
+:meth:`~drvs.server.registry.Registry.match` with the region's) on a registry built as
 the server builds it (its default index):
 
 - **registration**: N cameras registered one by one, each call timed. The
@@ -22,7 +22,7 @@ the server builds it (its default index):
   (and the mover, sharing the GIL with a loop that never waits, makes fewer
   moves than due at 1M: the report says how many);
 - **the paper's linear scan** (Algorithm 1: every registered polygon tested
-  with shapely, by the same rule, :func:`drvs.spatial_index.interiors_intersect`)
+  with shapely, by the same rule, :func:`drvs.server.spatial_index.interiors_intersect`)
   at each size until one match takes over 1 s; larger sizes are not scanned
   (nothing is extrapolated). Its answers are checked against the index's.
 
@@ -50,9 +50,9 @@ import threading
 import time
 
 from bench.common import Context, Section, figure, save, spread, table, target
-from drvs.registry import Registry
-from drvs.spatial_index import interiors_intersect
-from drvs.validation import field_of_view_polygon, region_geometry, region_of_interest
+from drvs.common.validation import field_of_view_polygon, region_geometry, region_of_interest
+from drvs.server.registry import Registry
+from drvs.server.spatial_index import interiors_intersect
 
 NAME = 'registry'
 TITLE = 'Registry: match, registration and moves, 10 to 1M fields of view'

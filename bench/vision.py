@@ -2,7 +2,7 @@
 
 Per request, at 320×240, 640×480, 800×600 and 1280×960, per algorithm:
 
-- capture, ``render``: :meth:`drvs.scene.Scene.render` of the camera (PyBullet
+- capture, ``render``: :meth:`drvs.sim.scene.Scene.render` of the camera (PyBullet
   TinyRenderer), what a ``~source:=render`` vision system does for a new frame;
   ``topic``: what a ``~source:=topic`` one spends turning a camera message into a
   frame: deserialising a serialised sensor_msgs/Image (rgb8) of the rendered view,
@@ -11,10 +11,10 @@ Per request, at 320×240, 640×480, 800×600 and 1280×960, per algorithm:
   CompressedImage (JPEG quality 80) a camera driver would publish beside it.
 - segment: the algorithm's ``detect`` (image → pixel outlines); for motion also
   ``observe`` of the new frame, which the request path does when the stream has not.
-- project: :func:`drvs.vision.project_objects` and :func:`drvs.vision.in_region`
+- project: :func:`drvs.vision.pipeline.project_objects` and :func:`drvs.vision.pipeline.in_region`
   (pixel outlines → floor polygons in ``map``, lifted with the depth image, clipped
   to the region: the whole floor). Segment then project is exactly
-  :func:`drvs.vision.locate_labelled`.
+  :func:`drvs.vision.pipeline.locate_labelled`.
 
 Scenes: colour on ``test/worlds/accuracy.yaml`` seen by vs1 (the obstacle model:
 three boxes, one tall, one turned); apriltag on ``worlds/tags.yaml`` (vs2 sees the
@@ -32,7 +32,7 @@ distance, Hausdorff distance of the outline), and each tag's centre and heading
 (:func:`drvs.algorithms.apriltag.tag_pose`) against its body's pose, per resolution.
 
 Also, as bench_render.py did: how many renders 10 simultaneous requests cost
-through :class:`drvs.vision.FrameCache` (one, shared).
+through :class:`drvs.vision.pipeline.FrameCache` (one, shared).
 """
 
 from __future__ import annotations
@@ -52,11 +52,11 @@ from bench.common import Context, Section, figure, save, spread, table, target
 from drvs.algorithms import load_algorithms, parse_algorithm
 from drvs.algorithms.apriltag import tag_pose
 from drvs.algorithms.motion import STREAM_RATE, Motion
-from drvs.camera import PinholeCamera
-from drvs.scene import Scene
-from drvs.simulation import loop_of, position_on_loop
-from drvs.vision import FrameCache, in_region, project_objects
-from drvs.world import load_world
+from drvs.sim.scene import Scene
+from drvs.sim.simulation import loop_of, position_on_loop
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.pipeline import FrameCache, in_region, project_objects
 
 NAME = 'vision'
 TITLE = 'Vision: time per request by stage, and localisation error'
@@ -269,11 +269,11 @@ def topic(ctx: Context, frames: dict, repeats: int) -> dict:
     from sensor_msgs.msg import CompressedImage, Image
     from std_msgs.msg import Header
 
-    from drvs.optics import intrinsics_of
     from drvs.ros.frame_sources import TopicSource, _Received
     from drvs.ros.sim_camera import camera_info_message, compressed_message, image_message
     from drvs.ros.tf_frames import camera_transform
-    from drvs.scene import TINY_RENDERER_SAMPLE
+    from drvs.sim.scene import TINY_RENDERER_SAMPLE
+    from drvs.vision.optics import intrinsics_of
 
     results = {}
     for label, frame in frames.items():
@@ -321,7 +321,7 @@ def topic(ctx: Context, frames: dict, repeats: int) -> dict:
 
 
 def frame_sharing(scene: Scene, camera: PinholeCamera, requests: int = 10) -> dict:
-    """``requests`` simultaneous requests on one :class:`drvs.vision.FrameCache`: the renders they
+    """``requests`` simultaneous requests on one :class:`drvs.vision.pipeline.FrameCache`: the renders they
     cost, and the wall time until the last has its frame."""
     cache = FrameCache(lambda stamp: scene.render(camera, stamp), max_age=0.1, clock=time.monotonic)
     barrier = threading.Barrier(requests)

@@ -171,8 +171,8 @@ def check_layout(plan: Layout, resolution: tuple[int, int]) -> None:
     """
     from shapely.geometry import Polygon, box
 
-    from drvs.camera import PinholeCamera
-    from drvs.spatial_index import interiors_intersect
+    from drvs.server.spatial_index import interiors_intersect
+    from drvs.vision.camera import PinholeCamera
 
     floor = tuple(plan.world['floor']['size'])
     for index in range(1, plan.cameras + 1):

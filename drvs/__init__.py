@@ -1,6 +1,8 @@
 """DRVS, the Distributed Robotic Vision Service.
 
-The core library (this package's modules) does not import rospy; the ROS glue
-lives in :mod:`drvs.ros`, and the generated message and service types in
-:mod:`drvs.msg` and :mod:`drvs.srv`.
+Packages by role (docs/architecture.md): :mod:`drvs.server`, :mod:`drvs.vision`,
+:mod:`drvs.robot` and :mod:`drvs.sim` hold the decisions, on :mod:`drvs.common` and the
+plugin API :mod:`drvs.algorithms`, without rospy; :mod:`drvs.ros` is the ROS glue,
+:mod:`drvs.tools` the command-line tools, :mod:`drvs.msg` and :mod:`drvs.srv` the
+generated message and service types.
 """

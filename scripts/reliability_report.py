@@ -10,7 +10,7 @@ test_security.py and test_master_restart.py; those not there yet are named in
 the report and skipped. pytest runs with ``DRVS_RELIABILITY_LOG`` set to a
 temporary file, in which each test leaves one line (drvs.testing.reliability_log);
 a suite that fails to import is reported by pytest and the others still run;
-drvs.reliability turns the lines into Markdown. README.md's block between
+drvs.testing.reliability_table turns the lines into Markdown. README.md's block between
 ``<!-- reliability:begin -->`` and ``<!-- reliability:end -->`` gets the summary,
 if the markers are there. ``--slow-log FILE``: the slow variants already ran
 with their lines in FILE (``make soak`` runs them with the rest of the slow
@@ -30,7 +30,7 @@ from collections import Counter
 from pathlib import Path
 from xml.etree import ElementTree
 
-from drvs.reliability import read_lines, replace_block, report, summarise, summary_table
+from drvs.testing.reliability_table import read_lines, replace_block, report, summarise, summary_table
 
 REPO = Path(__file__).resolve().parents[1]
 SUITES = [

@@ -133,7 +133,7 @@ out=$(cd "$out" && pwd)
 
 # The world's cameras, robots, whether it runs on simulated time, and the default timeout.
 facts=$("$root/.venv/bin/python" -c 'import math, sys
-from drvs.world import load_world
+from drvs.sim.world import load_world
 world = load_world(sys.argv[1])
 print(" ".join(c.name for c in world.vision_systems))
 print(" ".join(r.name for r in world.robots))
@@ -384,7 +384,7 @@ kill -s INT "$recorder_pid" 2>/dev/null || true
 for _ in $(seq 100); do kill -0 "$recorder_pid" 2>/dev/null || break; sleep 0.1; done
 if [ -f "$out/summary.json" ]; then
   "$py" -c 'import json, sys
-from drvs.report import figures_table
+from drvs.sim.report import figures_table
 print(figures_table(json.load(open(sys.argv[1]))))' "$out/summary.json" | sed 's/^/run_scenario: /'
 fi
 # Which robots did not reach their stations: from their own exit codes, or the watcher's lines.

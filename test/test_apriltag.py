@@ -10,15 +10,17 @@ import pytest
 import yaml
 
 import drvs.algorithms.apriltag
-import drvs.tag_images
+import drvs.algorithms.tag_images
 from drvs.algorithms import AlgorithmError, AlgorithmSet, parse_algorithm
 from drvs.algorithms.apriltag import AprilTag, TagQuery, tag_pose
-from drvs.camera import PinholeCamera
-from drvs.optics import CameraModel
-from drvs.scene import Frame, Scene
-from drvs.tag_images import FAMILIES, cells, dictionary, tag_image
-from drvs.vision import locate_labelled
-from drvs.world import Tag, WorldError, load_world
+from drvs.algorithms.tag_images import FAMILIES, cells, dictionary, tag_image
+from drvs.sim.scene import Scene
+from drvs.sim.world import Tag, WorldError
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.optics import CameraModel
+from drvs.vision.pipeline import locate_labelled
 
 ALGORITHMS = AlgorithmSet([AprilTag()])
 
@@ -146,7 +148,7 @@ def test_bad_heights_are_refused(kwargs, message):
     assert str(error.value) == message
 
 
-@pytest.mark.parametrize('module', [drvs.algorithms.apriltag, drvs.tag_images])
+@pytest.mark.parametrize('module', [drvs.algorithms.apriltag, drvs.algorithms.tag_images])
 def test_doctests(module):
     result = doctest.testmod(module)
     assert result.attempted > 0 and result.failed == 0

@@ -19,16 +19,16 @@ import numpy as np
 import pytest
 import yaml
 
-from drvs import calibration
-from drvs.calibration import CalibrationError, FloorPoint, Intrinsics
-from drvs.camera import PinholeCamera
-from drvs.optics import OPENCV_OFFSET, intrinsics_of, optical_pose_of
-from drvs.ros.calibrate import sibling_camera_info
-from drvs.scene import TINY_RENDERER_SAMPLE
+from drvs.sim.scene import TINY_RENDERER_SAMPLE
+from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness, free_port
 from drvs.testing.harness import REPO
 from drvs.testing.tags import FloorTag, render_floor_tags
-from drvs.world import load_world
+from drvs.tools.calibrate import sibling_camera_info
+from drvs.vision import calibration
+from drvs.vision.calibration import CalibrationError, FloorPoint, Intrinsics
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import OPENCV_OFFSET, intrinsics_of, optical_pose_of
 
 TAGS = [
     FloorTag(0, (1.0, 1.0), yaw=0.3),

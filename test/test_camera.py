@@ -7,7 +7,7 @@ import pybullet
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.camera import PinholeCamera
+from drvs.vision.camera import PinholeCamera
 
 CAMERAS = {
     'overhead': PinholeCamera(eye=(2.0, 1.5, 3.0), target=(2.0, 1.5, 0.0), fov_deg=60, width=800, height=600),

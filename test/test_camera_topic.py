@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.camera import PinholeCamera
-from drvs.optics import OPENCV_OFFSET, CameraModel, optical_pose_of
-from drvs.status import UNAVAILABLE
+from drvs.common.status import UNAVAILABLE
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import OPENCV_OFFSET, CameraModel, optical_pose_of
 
 CALLBACK = '/robot/callback_coordinates'
 BOX = [[1.6, 1.2], [2.4, 1.3], [2.35, 1.8], [1.55, 1.7]]  # a quadrilateral, turned

@@ -8,10 +8,10 @@ run, all with the same field of view, on a private master.
 import pytest
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceClient
 from drvs.srv import RegisterVisionService
-from drvs.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.testing import echo, read_json_lines, wait_for
 from drvs.testing.detect import detect
 

@@ -3,9 +3,9 @@
 import pytest
 from shapely.geometry import Point, box
 
-from drvs.controller import ARRIVED, BLOCKED, FAILED, Controller, ControllerSettings, DeadReckoning
-from drvs.occupancy import CostGrid, GridSpec
-from drvs.perception import Fix
+from drvs.robot.controller import ARRIVED, BLOCKED, FAILED, Controller, ControllerSettings, DeadReckoning
+from drvs.robot.occupancy import CostGrid, GridSpec
+from drvs.robot.perception import Fix
 
 SPEC = GridSpec((3.0, 2.0), 0.05)
 RADIUS = 0.15 * 2**0.5  # half the diagonal of a 0.3 m robot

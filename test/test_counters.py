@@ -1,16 +1,16 @@
-"""drvs.counters: counts since start and over the last period (no ROS)."""
+"""drvs.common.counters: counts since start and over the last period (no ROS)."""
 
 import doctest
 import threading
 
 import pytest
 
-import drvs.counters
-from drvs.counters import OTHER, PeriodCounts
+import drvs.common.counters
+from drvs.common.counters import OTHER, PeriodCounts
 
 
 def test_doctests():
-    result = doctest.testmod(drvs.counters)
+    result = doctest.testmod(drvs.common.counters)
     assert result.attempted > 0 and result.failed == 0
 
 

@@ -1,4 +1,4 @@
-"""Health rules (drvs.health) and their publication on /diagnostics (drvs.ros.diagnostics)."""
+"""Health rules (drvs.common.health) and their publication on /diagnostics (drvs.ros.diagnostics)."""
 
 import doctest
 import sys
@@ -8,8 +8,8 @@ import pytest
 import rospy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
-from drvs import health
-from drvs.health import ERROR, OK, WARN, Health, robot_health, server_health, vision_system_health
+from drvs.common import health
+from drvs.common.health import ERROR, OK, WARN, Health, robot_health, server_health, vision_system_health
 from drvs.ros.diagnostics import DiagnosticsPublisher, health_to_status, statuses_to_array
 from drvs.testing.messages import round_trip
 
@@ -319,7 +319,7 @@ def test_period_must_be_positive():
 NODE = textwrap.dedent(
     """
     import rospy
-    from drvs.health import WARN, Health
+    from drvs.common.health import WARN, Health
     from drvs.ros.diagnostics import DiagnosticsPublisher
 
     def broken():

@@ -4,7 +4,7 @@ import threading
 
 import pytest
 
-from drvs.dispatch import Busy, Dispatcher
+from drvs.server.dispatch import Busy, Dispatcher
 from drvs.testing import wait_for
 
 

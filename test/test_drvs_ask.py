@@ -6,8 +6,9 @@ import re
 
 import pytest
 
-import drvs.ros.ask as ask_module
-from drvs.ros.ask import (
+import drvs.tools.ask as ask_module
+from drvs.testing import RosHarness, wait_for
+from drvs.tools.ask import (
     EXIT_CODES,
     FOUND,
     NO_MASTER,
@@ -18,7 +19,6 @@ from drvs.ros.ask import (
     USAGE,
     parse_args,
 )
-from drvs.testing import RosHarness, wait_for
 
 WORLD = 'test/worlds/small.yaml'
 STATION = 'colour:0,0,150,80,80,255'

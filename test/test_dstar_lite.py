@@ -8,8 +8,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import drvs.dstar_lite as dstar_lite
-from drvs.dstar_lite import INF, SCALE, SQRT2, DStarLite, PlanningError, octile, path_cost
+import drvs.robot.dstar_lite as dstar_lite
+from drvs.robot.dstar_lite import INF, SCALE, SQRT2, DStarLite, PlanningError, octile, path_cost
 
 
 def dijkstra(costs: np.ndarray, start, goal) -> float:

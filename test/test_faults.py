@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import pytest
 
+from drvs.common.status import ACCEPTED, UNAVAILABLE
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
-from drvs.status import ACCEPTED, UNAVAILABLE
 from drvs.testing import WaitTimeout, read_json_lines, wait_for
 from drvs.testing.reliability_log import Trial, sample_resources
 

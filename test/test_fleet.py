@@ -19,11 +19,11 @@ from typing import NamedTuple
 import pytest
 from test_record import drvs_report
 
-from drvs.report import SERVER_FIGURES
+from drvs.sim.report import SERVER_FIGURES
+from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness, wait_for
 from drvs.testing.harness import REPO
 from drvs.testing.netns import namespaces_of, unavailable
-from drvs.world import load_world
 
 CROSSING = 'worlds/crossing.yaml'
 WAREHOUSE = 'worlds/warehouse.yaml'

@@ -16,13 +16,14 @@ from shapely.geometry import LineString, Polygon, box
 from shapely.ops import unary_union
 
 from drvs.algorithms import parse_algorithm
-from drvs.camera import PinholeCamera
 from drvs.ros.node_main import NoClock, wait_for_clock
-from drvs.scene import Scene
+from drvs.sim.scene import Scene
+from drvs.sim.world import box_footprint
+from drvs.sim.world_file import load_world
 from drvs.testing import wait_for
 from drvs.testing.harness import echo, read_json_lines, seconds
-from drvs.vision import locate_objects
-from drvs.world import box_footprint, load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.pipeline import locate_objects
 
 WAREHOUSE, CROSSING = 'worlds/warehouse.yaml', 'worlds/crossing.yaml'
 FLEETS = [WAREHOUSE, CROSSING]

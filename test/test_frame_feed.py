@@ -1,4 +1,4 @@
-"""drvs.frame_feed: which frame a request gets, and when a feed is stale (no roscore, a manual clock)."""
+"""drvs.vision.frame_feed: which frame a request gets, and when a feed is stale (manual clock)."""
 
 import doctest
 import threading
@@ -6,10 +6,10 @@ from types import SimpleNamespace
 
 import pytest
 
-import drvs.frame_feed
-from drvs.frame_feed import FrameFeed, FrameTimeout
+import drvs.vision.frame_feed
 from drvs.testing import wait_for
 from drvs.testing.clock import ManualClock
+from drvs.vision.frame_feed import FrameFeed, FrameTimeout
 
 
 def frame(stamp):
@@ -17,7 +17,7 @@ def frame(stamp):
 
 
 def test_doctest():
-    assert doctest.testmod(drvs.frame_feed).failed == 0
+    assert doctest.testmod(drvs.vision.frame_feed).failed == 0
 
 
 def test_a_fresh_frame_is_used_at_once():

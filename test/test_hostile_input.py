@@ -3,9 +3,9 @@
 Three layers, each fed what a hostile or broken caller could send:
 
 - Properties (hypothesis) of the pure checks the server runs first:
-  :func:`drvs.algorithms.parse_algorithm`, :func:`drvs.validation.region_of_interest`,
-  :func:`~drvs.validation.field_of_view_polygon`, :func:`~drvs.validation.ros_name`,
-  :func:`~drvs.validation.global_ros_name` and :func:`~drvs.validation.request_fields`.
+  :func:`drvs.algorithms.parse_algorithm`, :func:`drvs.common.validation.region_of_interest`,
+  :func:`~drvs.common.validation.field_of_view_polygon`, :func:`~drvs.common.validation.ros_name`,
+  :func:`~drvs.common.validation.global_ros_name` and :func:`~drvs.common.validation.request_fields`.
   Each either returns a value that keeps its promise or raises its own error type
   (``AlgorithmError`` / ``ValidationError``) whose message starts with the field name;
   no other exception type may escape. Examples are derandomized (the same in every run).
@@ -60,7 +60,6 @@ from hypothesis import strategies as st
 from shapely.geometry import Polygon
 from test_server import CALLBACK, Graph, square
 
-from drvs import status
 from drvs.algorithms import (
     BUILTIN_NAMES,
     MAX_LENGTH,
@@ -70,13 +69,8 @@ from drvs.algorithms import (
     parse_algorithm,
     split_algorithm,
 )
-from drvs.msg import BoundingBox
-from drvs.ros.conversions import points_to_polygon
-from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
-from drvs.spatial_index import interiors_intersect
-from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
-from drvs.testing import reliability_log, wait_for
-from drvs.validation import (
+from drvs.common import status
+from drvs.common.validation import (
     MAX_COORDINATE,
     MAX_NAME_LENGTH,
     ValidationError,
@@ -87,6 +81,12 @@ from drvs.validation import (
     request_fields,
     ros_name,
 )
+from drvs.msg import BoundingBox
+from drvs.ros.conversions import points_to_polygon
+from drvs.ros.service_client import ServiceCallError, ServiceClient, probe_service
+from drvs.server.spatial_index import interiors_intersect
+from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
+from drvs.testing import reliability_log, wait_for
 
 # -- properties of the pure checks ---------------------------------------------------------------
 
@@ -360,7 +360,7 @@ def test_request_fields_refuse_with_the_field_of_the_first_problem(algorithm, bo
     ids=['no values', 'three values', 'huge min_x', 'max_x 1e308', 'huge vertex', 'trailing newline'],
 )
 def test_what_the_fuzz_found_is_refused_by_name(check, value, message):
-    """Each was accepted, or raised another exception type, before drvs/validation.py was fixed."""
+    """Each was accepted, or raised another exception type, before drvs/common/validation.py was fixed."""
     with pytest.raises(ValidationError) as caught:
         check(value)
     assert str(caught.value) == message

@@ -125,8 +125,8 @@ def test_register_vision_service_round_trips():
 
 @pytest.mark.parametrize('response_class', [DetectObjectBoundaryResponse, RegisterVisionServiceResponse])
 def test_status_constants_match_drvs_status(response_class):
-    """Code without ROS (drvs.status) and the .srv constants that `rossrv show` lists agree."""
-    from drvs import status
+    """Code without ROS (drvs.common.status) and the .srv constants that `rossrv show` lists agree."""
+    from drvs.common import status
 
     for code, name in status.NAMES.items():
         assert getattr(response_class, name) == code

@@ -8,12 +8,14 @@ import yaml
 from shapely.geometry import Polygon
 
 from drvs.algorithms import parse_algorithm
-from drvs.camera import PinholeCamera
-from drvs.lens import MAX_CANVAS, Lens
-from drvs.optics import CameraModel, intrinsics_of
-from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
-from drvs.vision import locate_objects, vertex_depths
-from drvs.world import box_footprint, load_world
+from drvs.sim.lens import MAX_CANVAS, Lens
+from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
+from drvs.sim.world import box_footprint
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.optics import CameraModel, intrinsics_of
+from drvs.vision.pipeline import locate_objects, vertex_depths
 
 BARREL = (-0.2, 0.05, 0.001, -0.001, 0.0)
 WHOLE_FLOOR = (0.0, 0.0, 6.0, 4.0)
@@ -168,7 +170,7 @@ def test_outlines_through_the_lens_lie_on_the_true_footprint(views, name, body):
     for corner in truth.exterior.coords[:-1]:
         assert min(math.dist(corner, p) for p in found.exterior.coords) <= 0.02
     assert found.hausdorff_distance(truth) <= 0.02
-    # The frame's camera is the lens model, so drvs.vision reads distorted frames unchanged.
+    # The frame's camera is the lens model, so drvs.vision.pipeline reads distorted frames unchanged.
     located = [Polygon(o) for o in locate_objects(frame, algorithm, WHOLE_FLOOR)]
     assert len(located) == 1 and located[0].hausdorff_distance(truth) <= 0.02
 

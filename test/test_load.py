@@ -33,12 +33,12 @@ from dataclasses import dataclass
 import pytest
 from shapely.geometry import Polygon, box
 
-import drvs.reliability
+import drvs.testing.reliability_table
+from drvs.common.status import ACCEPTED, is_temporary
+from drvs.common.status import name as status_name
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
-from drvs.status import ACCEPTED, is_temporary
-from drvs.status import name as status_name
 from drvs.testing import WaitTimeout, read_json_lines, reliability_log, wait_for
 from drvs.testing.reliability_log import Resources, Trial, sample_resources
 
@@ -499,7 +499,7 @@ def test_lines_are_written_only_when_asked_and_failures_are_recorded(monkeypatch
 
 
 def test_the_report_counts_every_suite_and_shows_each_tests_numbers():
-    assert doctest.testmod(drvs.reliability).failed == 0
+    assert doctest.testmod(drvs.testing.reliability_table).failed == 0
     lines = [
         {
             'suite': 'fault',
@@ -522,7 +522,9 @@ def test_the_report_counts_every_suite_and_shows_each_tests_numbers():
         },
         {'suite': 'master', 'test': 'restart', 'what': 'roscore', 'outcome': 'survived', 'lost': 0},
     ]
-    text = drvs.reliability.report(lines, 'Generated now.', ['`test/test_security.py`: not there yet'])
+    text = drvs.testing.reliability_table.report(
+        lines, 'Generated now.', ['`test/test_security.py`: not there yet']
+    )
     assert text.splitlines()[:11] == [
         '# Reliability',
         '',

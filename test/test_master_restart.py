@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-import drvs.master_restart
-from drvs.master_restart import MasterRestartDetector, Verdict
+import drvs.common.master_restart
+from drvs.common.master_restart import MasterRestartDetector, Verdict
 from drvs.msg import BoundingBox
 from drvs.ros.master_watch import MasterWatch
 from drvs.ros.service_client import ServiceClient
@@ -41,7 +41,7 @@ def detector(clock):
 
 
 def test_the_module_example_holds():
-    assert doctest.testmod(drvs.master_restart).failed == 0
+    assert doctest.testmod(drvs.common.master_restart).failed == 0
 
 
 def verdicts(detector, polls):

@@ -16,10 +16,10 @@ from hypothesis import strategies as st
 from shapely.errors import ShapelyError
 from shapely.geometry import Polygon
 
-import drvs.spatial_index
-from drvs.registry import Registry
-from drvs.spatial_index import FieldOfViewIndex, interiors_intersect, separating_axes
-from drvs.validation import ValidationError, field_of_view_polygon, region_geometry, region_of_interest
+import drvs.server.spatial_index
+from drvs.common.validation import ValidationError, field_of_view_polygon, region_geometry, region_of_interest
+from drvs.server.registry import Registry
+from drvs.server.spatial_index import FieldOfViewIndex, interiors_intersect, separating_axes
 
 
 def random_polygon(rng: random.Random, kind: str):
@@ -257,13 +257,13 @@ def test_separating_axes_only_for_surely_convex_outlines():
 def geos_calls(monkeypatch):
     """The candidates the index hands to GEOS."""
     calls = []
-    real = drvs.spatial_index.interiors_intersect
+    real = drvs.server.spatial_index.interiors_intersect
 
     def counted(field_of_view, region):
         calls.append(region.geom_type)
         return real(field_of_view, region)
 
-    monkeypatch.setattr(drvs.spatial_index, 'interiors_intersect', counted)
+    monkeypatch.setattr(drvs.server.spatial_index, 'interiors_intersect', counted)
     return calls
 
 

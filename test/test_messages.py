@@ -8,7 +8,6 @@ import genpy
 import pytest
 from shapely.geometry import Polygon
 
-from drvs import controller
 from drvs.msg import (
     BodyPoses,
     NodeCpu,
@@ -18,7 +17,7 @@ from drvs.msg import (
     VisionSystemEntry,
     VisionSystemStats,
 )
-from drvs.registry import Registration
+from drvs.robot import controller
 from drvs.ros.messages import (
     ROBOT_STATES,
     STATS_COUNTERS,
@@ -31,6 +30,7 @@ from drvs.ros.messages import (
     stats_to_dict,
     stats_to_msg,
 )
+from drvs.server.registry import Registration
 from drvs.testing.harness import REPO
 from drvs.testing.messages import round_trip as serialize_deserialize
 

@@ -13,11 +13,12 @@ from shapely.geometry import Point, Polygon, box
 import drvs.algorithms.motion
 from drvs.algorithms import AlgorithmError, AlgorithmSet, builtin_algorithms, parse_algorithm
 from drvs.algorithms.motion import DEFAULT_MIN_AREA, WARM_UP, Motion, MotionParams
-from drvs.camera import PinholeCamera
-from drvs.scene import Frame, Scene
-from drvs.simulation import loop_of, position_on_loop
-from drvs.vision import locate_objects
-from drvs.world import load_world
+from drvs.sim.scene import Scene
+from drvs.sim.simulation import loop_of, position_on_loop
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.pipeline import locate_objects
 
 # -- parameters ----------------------------------------------------------------------------------
 

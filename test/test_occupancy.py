@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from shapely.geometry import Point, box
 
-from drvs import occupancy
-from drvs.dstar_lite import FREE, DStarLite
-from drvs.occupancy import (
+from drvs.robot import occupancy
+from drvs.robot.dstar_lite import FREE, DStarLite
+from drvs.robot.occupancy import (
     INFLATED,
     LETHAL,
     CostGrid,

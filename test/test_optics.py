@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from shapely.geometry import Point, Polygon
 
-import drvs.optics
-from drvs.camera import PinholeCamera
-from drvs.optics import UNDISTORT_TOLERANCE, CameraModel, intrinsics_of, optical_pose_of
-from drvs.scene import TINY_RENDERER_SAMPLE
+import drvs.vision.optics
+from drvs.sim.scene import TINY_RENDERER_SAMPLE
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import UNDISTORT_TOLERANCE, CameraModel, intrinsics_of, optical_pose_of
 
 CAMERAS = {
     'overhead': PinholeCamera(eye=(2.0, 1.5, 3.0), target=(2.0, 1.5, 0.0), fov_deg=60, width=800, height=600),
@@ -42,7 +42,7 @@ def depth_of(model, points):
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.optics).failed == 0
+    assert doctest.testmod(drvs.vision.optics).failed == 0
 
 
 @pytest.mark.parametrize('name', CAMERAS)

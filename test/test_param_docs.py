@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
+from drvs.common.settings import POSITIVE, REQUIRED, Settings, at_least, one_of, param
 from drvs.ros.param_docs import NODES, block, main, rewritten, table
-from drvs.settings import POSITIVE, REQUIRED, Settings, at_least, one_of, param
 
 README = Path(__file__).resolve().parent.parent / 'README.md'
 
@@ -58,7 +58,7 @@ def test_a_field_declared_without_a_meaning_is_refused():
 
     with pytest.raises(ValueError) as error:
         table(Bare)
-    assert str(error.value) == 'Bare.rate: no meaning; declare it with drvs.settings.param'
+    assert str(error.value) == 'Bare.rate: no meaning; declare it with drvs.common.settings.param'
 
 
 def test_writing_fills_every_block_and_refuses_a_file_without_markers(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""read_params and drvs.settings: ~parameters read one way, ranges checked in one place, every
+"""read_params and drvs.common.settings: ~parameters read one way, ranges checked in one place, every
 problem listed at once with where its value came from, unknown names warned about."""
 
 import dataclasses
@@ -8,8 +8,19 @@ from dataclasses import dataclass
 
 import pytest
 
+import drvs.common.settings
 import drvs.ros.params
-import drvs.settings
+from drvs.common.settings import (
+    NON_NEGATIVE,
+    POSITIVE,
+    REQUIRED,
+    ParamError,
+    Settings,
+    at_least,
+    between,
+    one_of,
+    param,
+)
 from drvs.ros.params import (
     command_line_params,
     origin_note,
@@ -24,17 +35,6 @@ from drvs.ros.server import ServerSettings
 from drvs.ros.sim_camera import SimCameraParams
 from drvs.ros.vision_system import VisionSystemParams
 from drvs.ros.world_sim import WorldSimSettings
-from drvs.settings import (
-    NON_NEGATIVE,
-    POSITIVE,
-    REQUIRED,
-    ParamError,
-    Settings,
-    at_least,
-    between,
-    one_of,
-    param,
-)
 
 
 @dataclass(frozen=True)
@@ -78,7 +78,7 @@ def test_missing_and_mistyped_parameters_are_named(given, message):
     assert str(error.value) == message
 
 
-# -- declared ranges, checked in one place (drvs.settings) ------------------------------------
+# -- declared ranges, checked in one place (drvs.common.settings) ------------------------------------
 @dataclass(frozen=True)
 class Declared(Settings):
     world: str = param(REQUIRED, 'the world file')
@@ -271,6 +271,6 @@ def test_a_folder_parameter_is_created_or_refused_naming_it(tmp_path):
     assert str(error.value) == f'~out: cannot write to the folder {tmp_path}/file/sub: Not a directory'
 
 
-@pytest.mark.parametrize('module', [drvs.settings, drvs.ros.params])
+@pytest.mark.parametrize('module', [drvs.common.settings, drvs.ros.params])
 def test_doctests(module):
     assert doctest.testmod(module).failed == 0

@@ -4,7 +4,7 @@ the region-of-interest policy."""
 import pytest
 from shapely.geometry import box
 
-from drvs.perception import (
+from drvs.robot.perception import (
     WATCH,
     Fix,
     Perception,

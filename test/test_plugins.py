@@ -19,12 +19,12 @@ import pytest
 from shapely.geometry import Polygon
 
 from drvs.algorithms import AlgorithmError
-from drvs.scene import Frame
-from drvs.status import ACCEPTED, INVALID, UNSUPPORTED
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED
+from drvs.sim.world_file import load_world
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
 from drvs.testing.harness import parse_echo
-from drvs.world import load_world
+from drvs.vision.frame import Frame
 
 REPO = Path(__file__).resolve().parents[1]
 PLUGIN = REPO / 'test' / 'plugin_example'

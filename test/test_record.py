@@ -20,14 +20,14 @@ from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
 from drvs.msg import NodeCpu, RecorderSample, Registry, ServerStats, VisionSystemEntry
-from drvs.report import write_report
-from drvs.ros.bag_report import read_bag, regenerate
 from drvs.ros.messages import robot_status_to_msg, stats_to_msg
 from drvs.ros.recorder import RunRecorder, cpu_summary
+from drvs.sim.report import write_report
+from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness, wait_for
 from drvs.testing.harness import REPO, echo
 from drvs.testing.messages import round_trip
-from drvs.world import load_world
+from drvs.tools.bag_report import read_bag, regenerate
 
 WORLD = REPO / 'worlds' / 'localisation.yaml'
 SCENARIO_TIMEOUT = 150

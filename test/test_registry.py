@@ -4,10 +4,10 @@ import doctest
 
 import pytest
 
-import drvs.registry
-from drvs.registry import Registry, ValidationError, algorithm_names
-from drvs.spatial_index import FieldOfViewIndex
-from drvs.status import UNAVAILABLE, Refusal
+import drvs.server.registry
+from drvs.common.status import UNAVAILABLE, Refusal
+from drvs.server.registry import Registry, ValidationError, algorithm_names
+from drvs.server.spatial_index import FieldOfViewIndex
 from drvs.testing import ManualClock
 
 
@@ -230,7 +230,7 @@ def test_registration_keeps_the_outline_as_sent(registry):
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.registry).failed == 0
+    assert doctest.testmod(drvs.server.registry).failed == 0
 
 
 def test_an_empty_algorithm_list_means_the_built_ins():

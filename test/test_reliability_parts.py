@@ -7,11 +7,11 @@ import threading
 
 import pytest
 
-import drvs.retry
-from drvs.client_cache import ClosingCache
-from drvs.guard import RESTART, SHUTDOWN, LoopGuard
-from drvs.rate_limit import RateLimiter
-from drvs.retry import retry_delay
+import drvs.common.retry
+from drvs.common.client_cache import ClosingCache
+from drvs.common.guard import RESTART, SHUTDOWN, LoopGuard
+from drvs.common.retry import retry_delay
+from drvs.server.rate_limit import RateLimiter
 from drvs.testing import ManualClock
 
 WAIT = 5.0  # seconds any thread event may take before the test fails
@@ -121,7 +121,7 @@ def test_rate_limiter_bad_arguments(rate, burst, max_keys, message):
 
 
 def test_retry_delay_doctest():
-    result = doctest.testmod(drvs.retry)
+    result = doctest.testmod(drvs.common.retry)
     assert result.attempted == 4
     assert result.failed == 0
 

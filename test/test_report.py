@@ -9,8 +9,8 @@ import pytest
 import yaml
 from matplotlib.colors import to_hex
 
-import drvs.report
-from drvs.report import (
+import drvs.sim.report
+from drvs.sim.report import (
     CAMERA_COLOURS,
     HUMAN_COLOURS,
     ROBOT_COLOURS,
@@ -25,7 +25,8 @@ from drvs.report import (
     summary,
     trace,
 )
-from drvs.world import Body, FleetRobot, load_world
+from drvs.sim.world import Body, FleetRobot
+from drvs.sim.world_file import load_world
 
 MODELS = {
     'self': 'colour:0,150,0,80,255,80',
@@ -335,4 +336,4 @@ def test_the_fleet_picture_draws_each_robot_in_its_own_colour_and_names_it(tmp_p
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.report).failed == 0
+    assert doctest.testmod(drvs.sim.report).failed == 0

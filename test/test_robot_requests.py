@@ -7,12 +7,12 @@ from collections import deque
 
 import pytest
 
-import drvs.request_schedule
-from drvs.rate_limit import RateLimiter
-from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
+import drvs.robot.poll_schedule
+from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED
+from drvs.common.status import name as status_name
+from drvs.robot.poll_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
 from drvs.ros.robot import RobotParams, request_schedule
-from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED
-from drvs.status import name as status_name
+from drvs.server.rate_limit import RateLimiter
 from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 3.0, 3.0)
@@ -47,7 +47,7 @@ def drain(schedule, clock, respond=None):
 
 
 def test_the_module_example():
-    result = doctest.testmod(drvs.request_schedule)
+    result = doctest.testmod(drvs.robot.poll_schedule)
     assert result.attempted > 0 and result.failed == 0
 
 

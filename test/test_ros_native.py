@@ -15,15 +15,15 @@ from pathlib import Path
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.camera import PinholeCamera
-from drvs.health import ERROR, OK, WARN
+from drvs.common.health import ERROR, OK, WARN
+from drvs.common.transforms import matrix_from_quaternion
 from drvs.msg import BodyPoses, Registry, RobotStatus, VisionSystemStats
-from drvs.optics import optical_pose_of
 from drvs.ros.markers import DETECTION_LIFETIME, algorithm_colour
+from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness, echo, read_json_lines, seconds, wait_for
 from drvs.testing.detect import detect
-from drvs.transforms import matrix_from_quaternion
-from drvs.world import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import optical_pose_of
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'

@@ -11,10 +11,10 @@ import math
 import pytest
 from shapely.geometry import LineString, Point, Polygon, box
 
-from drvs.camera import PinholeCamera
 from drvs.ros.robot import RobotParams
+from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness, wait_for
-from drvs.world import load_world
+from drvs.vision.camera import PinholeCamera
 
 SCENARIO_TIMEOUT = 150
 

@@ -34,7 +34,7 @@ import pytest
 from geometry_msgs.msg import Polygon
 from test_server import CALLBACK, COLOUR, square
 
-from drvs import status
+from drvs.common import status
 from drvs.msg import BoundingBox
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceClient

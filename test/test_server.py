@@ -5,11 +5,11 @@ import math
 import pytest
 from geometry_msgs.msg import Polygon
 
+from drvs.common.status import INVALID, UNSUPPORTED
 from drvs.msg import BoundingBox
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
-from drvs.status import INVALID, UNSUPPORTED
 from drvs.testing import echo, points, read_json_lines, wait_for
 
 SERVER = 'nodes/drvs_server'

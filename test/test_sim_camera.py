@@ -22,8 +22,7 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from drvs.camera import PinholeCamera
-from drvs.optics import intrinsics_of, optical_pose_of
+from drvs.common.transforms import matrix_from_quaternion
 from drvs.ros.messages import body_poses_from_msg
 from drvs.ros.params import read_params
 from drvs.ros.sim_camera import (
@@ -35,10 +34,11 @@ from drvs.ros.sim_camera import (
     selected_cameras,
 )
 from drvs.ros.tf_frames import transform_message
-from drvs.scene import TINY_RENDERER_SAMPLE, Scene
+from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
+from drvs.sim.world_file import load_world
 from drvs.testing import read_json_lines, wait_for
-from drvs.transforms import matrix_from_quaternion
-from drvs.world import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import intrinsics_of, optical_pose_of
 
 WORLD = 'test/worlds/small.yaml'
 LENS_WORLD = 'test/worlds/small_lens.yaml'
@@ -189,7 +189,7 @@ def test_frames_are_stamped_with_the_poses_they_show(ros):
 
 
 def test_a_lens_distorts_the_published_frames_and_its_coefficients_are_in_camera_info(ros):
-    from drvs.lens import Lens
+    from drvs.sim.lens import Lens
 
     world = load_world(LENS_WORLD)
     start_sim_camera(ros, LENS_WORLD, cameras=['vs1'], compression='png')
@@ -330,4 +330,4 @@ def test_a_lens_that_folds_over_is_refused_naming_the_camera(tmp_path):
     with pytest.raises(ValueError) as error:
         SimCameraNode(params_from(world=str(path)))
     prefix = f'{path}: vision_systems vs1: Lens: distortion [-1.0, 0.0, 0.0, 0.0, 0.0] cannot be undone'
-    assert str(error.value).startswith(prefix)  # the rest is drvs.lens's
+    assert str(error.value).startswith(prefix)  # the rest is drvs.sim.lens's

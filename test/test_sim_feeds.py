@@ -8,9 +8,9 @@ still lie where the objects are.
 
 from shapely.geometry import Polygon
 
+from drvs.sim.world_file import load_world
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
-from drvs.world import load_world
 
 CALLBACK = '/robot/callback_coordinates'
 

@@ -7,8 +7,8 @@ import math
 import pytest
 import yaml
 
-import drvs.simulation
-from drvs.simulation import (
+import drvs.sim.simulation
+from drvs.sim.simulation import (
     FLOOR_EDGE,
     MAX_STEP,
     Simulation,
@@ -17,7 +17,7 @@ from drvs.simulation import (
     mount_position,
     position_on_loop,
 )
-from drvs.world import load_world
+from drvs.sim.world_file import load_world
 
 WORLD = {
     'floor': {'size': [4.0, 3.0]},
@@ -297,7 +297,7 @@ def test_a_walker_waiting_for_the_robots_starts_when_any_robot_moves(fleet):
 
 
 def test_the_step_clock_follows_the_wall_clock_or_runs_slower_on_simulated_time():
-    assert doctest.testmod(drvs.simulation).failed == 0
+    assert doctest.testmod(drvs.sim.simulation).failed == 0
     walls = iter([100.0, 100.1, 100.4, 100.5])
     clock = StepClock(lambda: next(walls))  # real time: the wall time, with each step capped
     assert clock.tick() == pytest.approx((100.1, 0.1))

@@ -6,11 +6,11 @@ import pytest
 import rospy
 from geometry_msgs.msg import TransformStamped
 
-from drvs.camera import PinholeCamera
-from drvs.optics import optical_pose_of
+from drvs.common.transforms import matrix_from_quaternion
 from drvs.ros.tf_frames import body_transform, camera_transform, optical_frame
 from drvs.testing.messages import round_trip
-from drvs.transforms import matrix_from_quaternion
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import optical_pose_of
 
 
 def rotation_of(message: TransformStamped):

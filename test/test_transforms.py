@@ -1,4 +1,4 @@
-"""Rotation matrix <-> quaternion (drvs.transforms): round trips, every branch, refusals."""
+"""Rotation matrix <-> quaternion (drvs.common.transforms): round trips, every branch, refusals."""
 
 import doctest
 import math
@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
-import drvs.transforms
-from drvs.camera import PinholeCamera
-from drvs.optics import optical_pose_of
-from drvs.transforms import matrix_from_quaternion, quaternion_from_matrix
+import drvs.common.transforms
+from drvs.common.transforms import matrix_from_quaternion, quaternion_from_matrix
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import optical_pose_of
 
 
 def axis_angle(axis, angle):
@@ -18,7 +18,7 @@ def axis_angle(axis, angle):
 
 
 def test_doctest():
-    assert doctest.testmod(drvs.transforms).failed == 0
+    assert doctest.testmod(drvs.common.transforms).failed == 0
 
 
 @pytest.mark.parametrize(

@@ -5,7 +5,7 @@ import math
 import pytest
 
 from drvs.algorithms import AlgorithmError
-from drvs.validation import (
+from drvs.common.validation import (
     ValidationError,
     field_of_view_polygon,
     global_ros_name,

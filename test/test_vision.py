@@ -9,10 +9,11 @@ import yaml
 from shapely.geometry import Polygon, box
 
 from drvs.algorithms import parse_algorithm
-from drvs.camera import PinholeCamera
-from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
-from drvs.vision import FrameCache, draw_detections, locate_objects
-from drvs.world import load_world
+from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.pipeline import FrameCache, draw_detections, locate_objects
 
 ACCURACY_WORLD = 'test/worlds/accuracy.yaml'
 WHOLE_FLOOR = (0.0, 0.0, 6.0, 4.0)

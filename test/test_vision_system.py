@@ -6,11 +6,12 @@ import threading
 from shapely.geometry import Polygon
 
 from drvs.ros.service_client import ServiceClient
-from drvs.simulation import loop_of, position_on_loop
+from drvs.sim.simulation import loop_of, position_on_loop
+from drvs.sim.world import box_footprint
+from drvs.sim.world_file import load_world
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import echo, read_json_lines, wait_for
 from drvs.testing.detect import detect as request
-from drvs.world import box_footprint, load_world
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'

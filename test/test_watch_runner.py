@@ -5,11 +5,11 @@ import math
 
 import pytest
 
-import drvs.watch_runner
+import drvs.vision.watch_runner
 from drvs.algorithms import AlgorithmError
-from drvs.status import BUSY, Refusal
-from drvs.validation import ValidationError
-from drvs.watch_runner import WatchRunner, outline_distance, outlines_changed, parse_watch
+from drvs.common.status import BUSY, Refusal
+from drvs.common.validation import ValidationError
+from drvs.vision.watch_runner import WatchRunner, outline_distance, outlines_changed, parse_watch
 
 CALLBACK = '/robot/callback_coordinates'
 COLOUR = 'colour:0,0,150,80,80,255'
@@ -35,7 +35,7 @@ def evaluate_due(runner, now, found):
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.watch_runner).failed == 0
+    assert doctest.testmod(drvs.vision.watch_runner).failed == 0
 
 
 def test_one_frame_per_tick_for_all_watches_that_are_due(runner):

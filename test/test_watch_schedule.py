@@ -6,9 +6,11 @@ import math
 import pytest
 from shapely.geometry import box
 
-import drvs.watch_schedule
-from drvs.perception import Fix, Region, RegionPolicy
-from drvs.request_schedule import ACCEPT, GIVE_UP, RETRY, Outcome
+import drvs.robot.watch_schedule
+from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, UNSUPPORTED
+from drvs.robot.perception import Fix, Region, RegionPolicy
+from drvs.robot.poll_schedule import ACCEPT, GIVE_UP, RETRY, Outcome
+from drvs.robot.watch_schedule import CANCEL, NEW, REGION, RENEW, WatchCall, WatchSchedule
 from drvs.ros.robot import (
     MAX_CELLS,
     RobotParams,
@@ -17,10 +19,9 @@ from drvs.ros.robot import (
     request_schedule,
     watch_schedule,
 )
-from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, UNSUPPORTED
+from drvs.sim.world import WorldError
+from drvs.sim.world_file import load_world
 from drvs.testing import ManualClock
-from drvs.watch_schedule import CANCEL, NEW, REGION, RENEW, WatchCall, WatchSchedule
-from drvs.world import WorldError, load_world
 
 FLOOR = (0.0, 0.0, 7.0, 5.5)
 AROUND = (1.0, 1.0, 3.0, 3.0)
@@ -64,7 +65,7 @@ def drain(schedule, clock, respond=accept):
 
 
 def test_the_module_example():
-    result = doctest.testmod(drvs.watch_schedule)
+    result = doctest.testmod(drvs.robot.watch_schedule)
     assert result.attempted > 0 and result.failed == 0
 
 

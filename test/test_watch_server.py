@@ -8,10 +8,10 @@ import pytest
 from test_server import CALLBACK, COLOUR, square
 
 import drvs.ros.server
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceClient
 from drvs.srv import WatchObjectBoundary
-from drvs.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.testing import echo, wait_for
 
 WATCH = '/drvs/watch_object_boundary'

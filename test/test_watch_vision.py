@@ -3,6 +3,7 @@
 import pytest
 
 from drvs.ros.service_client import ServiceCallError, ServiceClient
+from drvs.sim.world_file import load_world
 from drvs.srv import (
     DetectObjectBoundary,
     DetectObjectBoundaryRequest,
@@ -10,7 +11,6 @@ from drvs.srv import (
     WatchObjectBoundaryRequest,
 )
 from drvs.testing import echo, read_json_lines, wait_for
-from drvs.world import load_world
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'

@@ -4,12 +4,11 @@ import doctest
 
 import pytest
 
-import drvs.watches
-from drvs.dispatch import Busy
-from drvs.registry import Registry
-from drvs.testing import ManualClock
-from drvs.validation import ValidationError
-from drvs.watches import (
+import drvs.server.watch_table
+from drvs.common.validation import ValidationError
+from drvs.server.dispatch import Busy
+from drvs.server.registry import Registry
+from drvs.server.watch_table import (
     CANCELLED,
     NEW,
     NOT_STANDING,
@@ -21,6 +20,7 @@ from drvs.watches import (
     WatchTable,
     watch_terms,
 )
+from drvs.testing import ManualClock
 
 CALLBACK = '/robot/callback_coordinates'
 COLOUR = 'colour:0,0,150,80,80,255'
@@ -77,7 +77,7 @@ def watch(table, request_id='w1', region=LEFT, duration=10.0, period=0.5, caller
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.watches).failed == 0
+    assert doctest.testmod(drvs.server.watch_table).failed == 0
 
 
 @pytest.mark.parametrize(

@@ -6,8 +6,11 @@ import doctest
 import pytest
 import yaml
 
-import drvs.world
-from drvs.world import WorldError, load_world
+import drvs.sim.world
+import drvs.sim.world_file
+import drvs.sim.world_sense
+from drvs.sim.world import WorldError
+from drvs.sim.world_file import load_world
 
 BASE = {
     'floor': {'size': [4.0, 3.0]},
@@ -275,7 +278,8 @@ def test_an_unknown_camera_is_named(tmp_path):
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.world).failed == 0
+    for module in (drvs.sim.world, drvs.sim.world_file, drvs.sim.world_sense):
+        assert doctest.testmod(module).failed == 0
 
 
 # -- fleets: robots: ----------------------------------------------------------------------------

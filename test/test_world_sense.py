@@ -9,7 +9,8 @@ import pytest
 import yaml
 from test_world import edited
 
-from drvs.world import Problem, WorldError, load_world
+from drvs.sim.world import Problem, WorldError
+from drvs.sim.world_file import load_world
 
 REPO = Path(__file__).resolve().parent.parent
 CHECK_WORLD = REPO / 'nodes' / 'drvs_check_world'

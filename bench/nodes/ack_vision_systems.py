@@ -21,6 +21,7 @@ from collections import Counter
 
 import rospy
 
+from drvs.common.status import ACCEPTED
 from drvs.ros.conversions import points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
@@ -29,7 +30,6 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceRequest,
 )
-from drvs.status import ACCEPTED
 
 BIN = 0.01
 REGISTER_TIMEOUT = 2.0

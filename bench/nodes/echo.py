@@ -11,8 +11,8 @@ Run as ``__name:=echo``: serves ``/echo/detect_object_boundary``.
 
 import rospy
 
+from drvs.common.status import ACCEPTED
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryResponse
-from drvs.status import ACCEPTED
 
 REPLY = DetectObjectBoundaryResponse(
     accepted=True, status=ACCEPTED, message='forwarded to 1 vision system', vision_systems=1

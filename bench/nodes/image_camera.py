@@ -13,9 +13,9 @@ CLI (private parameters)::
 - ``~cameras``: comma list of camera names (default ``cam1``); camera ``c`` publishes on
   ``~c/image/compressed`` (``/cams/cam1/image/compressed`` above).
 - ``~image``: an image file (anything cv2.imread reads) every camera publishes; or
-- ``~world``: a world file (drvs/world.py): camera ``c`` publishes the view of the world's
+- ``~world``: a world file (drvs/sim/world.py): camera ``c`` publishes the view of the world's
   ``vision_systems`` entry named ``c`` (or, when no entry has that name, the entry at the
-  camera's index in ``~cameras``), rendered once at start with drvs.scene (the world is
+  camera's index in ``~cameras``), rendered once at start with drvs.sim.scene (the world is
   static here).
 - ``~width``, ``~height``: render at / resize to this size (default 0: the world entry's
   resolution, or the file's size).
@@ -50,9 +50,9 @@ def names_of(text) -> list[str]:
 
 def rendered_views(world_path: str, cameras: list[str], size: tuple[int, int]) -> dict[str, np.ndarray]:
     """RGB views of the world's vision systems, one per camera name."""
-    from drvs.camera import PinholeCamera
-    from drvs.scene import Scene
-    from drvs.world import load_world
+    from drvs.sim.scene import Scene
+    from drvs.sim.world_file import load_world
+    from drvs.vision.camera import PinholeCamera
 
     world = load_world(world_path)
     entries = {camera.name: camera for camera in world.vision_systems}

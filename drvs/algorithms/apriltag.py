@@ -10,7 +10,7 @@ Each tag found is one :class:`PixelObject` labelled ``FAMILY:ID`` (``tag36h11:3`
 lying flat at that height (``height``) with its vertex order kept (``keep_order``).
 
 Corner order. The outline is the tag's black square, 4 corners in DRVS corner
-coordinates (OpenCV's + 0.5, :mod:`drvs.optics`): corner 0 is the printed top-left,
+coordinates (OpenCV's + 0.5, :mod:`drvs.vision.optics`): corner 0 is the printed top-left,
 then counter-clockwise as seen from above the tag: top-left, bottom-left,
 bottom-right, top-right. (aruco returns top-left, top-right, bottom-right,
 bottom-left; this is that order reversed after corner 0.) On the floor (``map``,
@@ -20,12 +20,12 @@ DRVS floor outline is.
 Heading. A tag's heading (its yaw in ``map``) is the direction from corner 0
 (top-left) to corner 3 (top-right): the printed "right". A tag laid with its
 printed top towards +y and its right towards +x has yaw 0, so a tag mounted on a
-robot turned with it (as :class:`drvs.scene.Scene` renders a world file's ``tag``)
+robot turned with it (as :class:`drvs.sim.scene.Scene` renders a world file's ``tag``)
 reads the robot's heading. :func:`tag_pose` gives a tag's centre and heading from
 its outline on the floor.
 
 Corners are refined to sub-pixel accuracy: aruco's ``CORNER_REFINE_CONTOUR``, then
-:func:`drvs.calibration.refine_tag_corners`, which fits a line to each outer edge
+:func:`drvs.vision.calibration.refine_tag_corners`, which fits a line to each outer edge
 of the black square (through the lens model of the frame's camera): see :func:`find_tags`.
 
 >>> from drvs.algorithms import AlgorithmSet, parse_algorithm
@@ -47,14 +47,14 @@ from types import MappingProxyType
 import numpy as np
 
 from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject
-from drvs.tag_images import FAMILIES, FAMILY_NAMES, dictionary
+from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES, dictionary
 
 SYNTAX = 'apriltag:FAMILY[:ID,ID,...][:h=HEIGHT]'
 MAX_FIELDS = 3
 ARUCO_TO_OUTLINE = (0, 3, 2, 1)
 """aruco's corners (top-left, top-right, bottom-right, bottom-left) in the outline's order."""
 OPENCV_OFFSET = 0.5
-"""DRVS corner coordinates minus this are OpenCV pixel coordinates (:data:`drvs.optics.OPENCV_OFFSET`)."""
+"""DRVS corner coordinates minus this are OpenCV pixel coordinates (as in :mod:`drvs.vision.optics`)."""
 _ID = re.compile(r'[0-9]+')
 
 
@@ -208,8 +208,8 @@ def _checked_height(value, what: str) -> float:
 
 def _intrinsics(frame):
     """The lens model of the frame's array pixels (OpenCV coordinates) for corner refinement."""
-    from drvs.calibration import Intrinsics
-    from drvs.optics import CameraModel
+    from drvs.vision.calibration import Intrinsics
+    from drvs.vision.optics import CameraModel
 
     camera = frame.camera
     model = camera if isinstance(camera, CameraModel) else CameraModel.from_pinhole(camera)
@@ -225,15 +225,15 @@ def find_tags(gray: np.ndarray, family: str, intrinsics=None) -> list[tuple[int,
     coordinates, in aruco's order (top-left, top-right, bottom-right, bottom-left as printed).
 
     aruco's corners (``CORNER_REFINE_CONTOUR``: lines fitted to the marker's own
-    contour) are refined with :func:`drvs.calibration.refine_tag_corners` through the
-    lens of ``intrinsics`` (:class:`drvs.calibration.Intrinsics`; None: an ideal lens).
+    contour) are refined with :func:`drvs.vision.calibration.refine_tag_corners` through the
+    lens of ``intrinsics`` (:class:`drvs.vision.calibration.Intrinsics`; None: an ideal lens).
     Not ``CORNER_REFINE_SUBPIX``: ``cv2.cornerSubPix`` moves to any corner near by, such
     as where a quiet zone ends against a coloured body, and the edge fit then refuses
     the moved corners.
     """
     import cv2
 
-    from drvs.calibration import Intrinsics, refine_tag_corners
+    from drvs.vision.calibration import Intrinsics, refine_tag_corners
 
     if intrinsics is None:
         intrinsics = Intrinsics(np.eye(3))  # without distortion the refinement does not use K
@@ -257,7 +257,7 @@ def tag_pose(outline) -> tuple[float, float, float]:
 
     The centre is where the diagonals (corner 0 to 2, 1 to 3) cross; the yaw is the
     direction of the printed right: corner 0 -> 3 averaged with corner 1 -> 2. Takes
-    (4, 2) or (4, 3) points in ``map`` (as :func:`drvs.vision.locate_labelled` reports
+    (4, 2) or (4, 3) points in ``map`` (as :func:`drvs.vision.pipeline.locate_labelled` reports
     them); in image coordinates (v down) the angle's sign flips.
 
     >>> x, y, yaw = tag_pose([(1.0, 3.0), (1.0, 1.0), (3.0, 1.0), (3.0, 3.0)])

@@ -13,7 +13,7 @@ built-ins and third-party plugins alike — is an object with:
     ``params`` is the text after the first ``:`` ('' when there is none). Raises
     :class:`AlgorithmError` whose message names the problem.
 ``detect(frame, params) -> list of PixelObject``
-    The objects in a :class:`drvs.scene.Frame` (``rgb``, ``depth`` or None,
+    The objects in a :class:`drvs.sim.scene.Frame` (``rgb``, ``depth`` or None,
     ``camera``, ``stamp``): each an outline in pixels, optionally a ``label`` and a
     ``height`` (the object lies flat at that height: its outline is met with that
     plane rather than the floor).

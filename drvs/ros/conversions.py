@@ -6,9 +6,9 @@ from collections.abc import Iterable, Sequence
 
 from geometry_msgs.msg import Point32, Polygon
 
+from drvs.common.status import Refusal
 from drvs.msg import BoundingBox, DetectedObject
 from drvs.srv import DetectObjectBoundaryResponse
-from drvs.status import Refusal
 
 Point = tuple[float, float]
 Box = tuple[float, float, float, float]  # min_x, min_y, max_x, max_y

@@ -3,7 +3,7 @@
 ``/diagnostics`` carries ``diagnostic_msgs/DiagnosticArray``, the ROS convention
 read by ``rqt_robot_monitor``, ``rqt_runtime_monitor`` and ``diagnostic_aggregator``.
 :class:`DiagnosticsPublisher` calls ``sample()`` (a function of the node that
-returns a :class:`drvs.health.Health`, usually one of :mod:`drvs.health`'s rule
+returns a :class:`drvs.common.health.Health`, usually one of :mod:`drvs.common.health`'s rule
 functions applied to the node's counters) every ``period`` seconds of wall time
 and publishes one ``DiagnosticStatus``. Wall time, not ROS time: health must keep
 flowing when a simulation's clock is paused. Usage, after ``rospy.init_node``::
@@ -13,7 +13,7 @@ flowing when a simulation's clock is paused. Usage, after ``rospy.init_node``::
     rospy.on_shutdown(diagnostics.stop)
 
 A ``sample()`` that raises does not end the loop: the status published instead is
-ERROR ``health check failed: <type>: <error>`` (:func:`drvs.health.check_failed`),
+ERROR ``health check failed: <type>: <error>`` (:func:`drvs.common.health.check_failed`),
 and the traceback is logged once per distinct failure, not once a period.
 
 In ROS 1 Python a ``byte`` field (``DiagnosticStatus.level``) is an ``int`` (genpy
@@ -30,8 +30,8 @@ from collections.abc import Callable, Sequence
 import rospy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from drvs.guard import RESTART, LoopGuard
-from drvs.health import Health, check_failed
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.health import Health, check_failed
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -67,7 +67,7 @@ class DiagnosticsPublisher:
     :param sample: returns the node's health now; called on the publisher's thread,
         so it must take the node's locks for what it reads.
     :param period: seconds between statuses (1 Hz is the convention).
-    :param guard: the node's :class:`drvs.guard.LoopGuard`; the loop runs under it with
+    :param guard: the node's :class:`drvs.common.guard.LoopGuard`; the loop runs under it with
         ``RESTART`` and ends when it stops. Without one, one is made that shuts the node
         down (``rospy.signal_shutdown``) if the loop keeps failing.
 

@@ -17,7 +17,7 @@ cv_bridge converts to rgb8) or ``image/compressed`` (sensor_msgs/CompressedImage
 image_geometry), optionally an aligned ``depth`` image (32FC1 metres or 16UC1
 millimetres, paired with the colour image by stamp), and the pose of the image's
 ``header.frame_id`` in ``map`` from tf2 at the image's stamp. Only the newest frame
-is kept (:class:`drvs.frame_feed.FrameFeed`); it is decoded when a request uses it.
+is kept (:class:`drvs.vision.frame_feed.FrameFeed`); it is decoded when a request uses it.
 """
 
 from __future__ import annotations
@@ -29,15 +29,16 @@ import numpy as np
 import rospy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from drvs.camera import PinholeCamera
-from drvs.frame_feed import FrameFeed, FrameTimeout
-from drvs.optics import CameraModel
+from drvs.common.transforms import matrix_from_quaternion
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
-from drvs.scene import Frame, Scene
-from drvs.simulation import mount_position
-from drvs.transforms import matrix_from_quaternion
-from drvs.vision import FrameCache
+from drvs.sim.scene import Scene
+from drvs.sim.simulation import mount_position
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.frame_feed import FrameFeed, FrameTimeout
+from drvs.vision.optics import CameraModel
+from drvs.vision.pipeline import FrameCache
 
 SUPPORTED_DISTORTION = ('plumb_bob', 'rational_polynomial', '')
 """CameraInfo distortion models OpenCV's pinhole functions read (an empty D means none)."""

@@ -4,7 +4,7 @@ rospy registers publications, subscriptions and services with the master once,
 when they are created. A restarted master knows none of them, so new lookups
 fail although open connections keep working. :class:`MasterWatch` polls the
 master every ``period`` seconds (``getPid`` and ``lookupNode`` of this node in one
-XML-RPC multicall, with a timeout) and, when :class:`drvs.master_restart.MasterRestartDetector`
+XML-RPC multicall, with a timeout) and, when :class:`drvs.common.master_restart.MasterRestartDetector`
 says so (a new master pid, or a master that does not know this node), registers
 everything this process has again, the way rospy's ``RegManager.start`` does at
 ``init_node``:
@@ -38,7 +38,7 @@ import rospy
 import rospy.core
 from rospy.impl.registration import get_service_manager, get_topic_manager
 
-from drvs.master_restart import MasterRestartDetector, Verdict
+from drvs.common.master_restart import MasterRestartDetector, Verdict
 from drvs.ros.service_client import TimeoutTransport
 
 logger = logging.getLogger('rosout.' + __name__)

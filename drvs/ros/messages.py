@@ -20,10 +20,10 @@ import genpy
 from geometry_msgs.msg import Point, Pose2D
 from std_msgs.msg import Header
 
-from drvs import controller
 from drvs.msg import BodyPoses, Registry, RobotStatus, VisionSystemEntry, VisionSystemStats
-from drvs.registry import Registration
+from drvs.robot import controller
 from drvs.ros.conversions import points_to_polygon, polygon_to_points
+from drvs.server.registry import Registration
 
 FRAME = 'map'
 NAN = float('nan')
@@ -153,7 +153,7 @@ def stats_to_dict(msg: VisionSystemStats) -> dict:
 def robot_status_to_msg(status: Mapping) -> RobotStatus:
     """The robot's status as it assembles it -> drvs/RobotStatus.
 
-    ``status`` holds ``state`` (a :mod:`drvs.controller` state name), ``reason``,
+    ``status`` holds ``state`` (a :mod:`drvs.robot.controller` state name), ``reason``,
     ``stamp``, ``distance_to_goal``, ``position`` and ``goal`` (None while unknown), the
     counters of :data:`ROBOT_COUNTERS`, ``refused`` ({status name: count}),
     ``vision_systems`` ({role: count}) and, with an apriltag self model, ``tag_pose``

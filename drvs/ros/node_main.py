@@ -4,7 +4,7 @@ A user's mistake ends the node with one message on stderr (and /rosout once the
 node is up), or one block listing every problem, and exit code 2
 (:data:`USER_ERROR`), never a traceback: a wrong or missing parameter (named,
 with where its value came from, :mod:`drvs.ros.params`), a world file that cannot
-be used (:class:`drvs.world.WorldError`), a file or folder that cannot be read or
+be used (:class:`drvs.sim.world.WorldError`), a file or folder that cannot be read or
 written, no ROS master, no ``/clock`` under ``/use_sim_time``. Anything else is a bug and
 keeps its traceback. A private parameter the node does not know is a warning with the
 nearest known name.
@@ -38,6 +38,7 @@ from pathlib import Path
 import rosgraph
 import rospy
 
+from drvs.common.settings import ParamError
 from drvs.ros.master_watch import watch_master
 from drvs.ros.params import (
     command_line_params,
@@ -47,7 +48,6 @@ from drvs.ros.params import (
     unknown_param_warnings,
 )
 from drvs.ros.service_client import TimeoutTransport
-from drvs.settings import ParamError
 
 __all__ = [
     'CLOCK_TIMEOUT',

@@ -5,7 +5,7 @@
 
 Each node's table lies between ``<!-- params:NODE:begin -->`` and
 ``<!-- params:NODE:end -->``; one row per field of its settings dataclass, as
-declared with :func:`drvs.settings.param`. ``test/test_param_docs.py`` fails
+declared with :func:`drvs.common.settings.param`. ``test/test_param_docs.py`` fails
 when README.md and the code disagree, so the parameters are documented once.
 """
 
@@ -16,13 +16,13 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from drvs.common.settings import annotation_type
 from drvs.ros.recorder import RecorderSettings
 from drvs.ros.robot import RobotParams
 from drvs.ros.server import ServerSettings
 from drvs.ros.sim_camera import SimCameraParams
 from drvs.ros.vision_system import VisionSystemParams
 from drvs.ros.world_sim import WorldSimSettings
-from drvs.settings import annotation_type
 
 NODES = {
     'drvs_server': ServerSettings,
@@ -67,13 +67,15 @@ def _default(field: dataclasses.Field) -> str:
 def table(cls) -> str:
     """The Markdown table of the settings dataclass ``cls``.
 
-    :raises ValueError: for a field not declared with :func:`drvs.settings.param` (no meaning).
+    :raises ValueError: for a field not declared with :func:`drvs.common.settings.param` (no meaning).
     """
     rows = [HEADER]
     for field in dataclasses.fields(cls):
         meaning = field.metadata.get('meaning')
         if not meaning:
-            raise ValueError(f'{cls.__name__}.{field.name}: no meaning; declare it with drvs.settings.param')
+            raise ValueError(
+                f'{cls.__name__}.{field.name}: no meaning; declare it with drvs.common.settings.param'
+            )
         cells = (f'`~{field.name}`', _type(field), _default(field), meaning)
         rows.append('| ' + ' | '.join(cell.replace('|', '\\|') for cell in cells) + ' |')
     return '\n'.join(rows)

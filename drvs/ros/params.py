@@ -1,12 +1,12 @@
 """Read a node's private ``~parameters`` into its settings dataclass, one way for every node.
 
 Every field of the dataclass is a parameter of the same name, declared with
-:func:`drvs.settings.param`. A field without a default is required. Values are
+:func:`drvs.common.settings.param`. A field without a default is required. Values are
 checked against the field's type (an int is accepted where a float is expected;
 ``None`` defaults accept a number or nothing), so a typo on the command line is
 refused with a message naming the parameter instead of failing later; building
-the dataclass then checks the declared ranges (:func:`drvs.settings.check`).
-Every problem is reported at once, one line per parameter (:class:`drvs.settings.ParamError`).
+the dataclass then checks the declared ranges (:func:`drvs.common.settings.check`).
+Every problem is reported at once, one line per parameter (:class:`drvs.common.settings.ParamError`).
 
 Where a wrong value came from matters: rospy puts the command line's
 ``_name:=value`` on the parameter server at ``init_node``, so a value on the
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import yaml
 
-from drvs.settings import ParamError, checked
+from drvs.common.settings import ParamError, checked
 
 __all__ = [
     'command_line_params',

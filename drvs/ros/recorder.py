@@ -3,9 +3,9 @@
 It is the scenario's observer, not part of DRVS. :class:`RunRecorder` turns the
 messages of a run — ground truth from world_sim, every robot's status, plans and
 map, the server's registry and counters, every vision system's counters and the
-recorder's own samples (drvs/RecorderSample) — into a :class:`drvs.report.RunRecord`.
+recorder's own samples (drvs/RecorderSample) — into a :class:`drvs.sim.report.RunRecord`.
 It is fed either live, by the subscriptions of :class:`RecorderNode`, or from a
-bag in recorded order (:mod:`drvs.ros.bag_report`, ``drvs_report``): the same
+bag in recorded order (:mod:`drvs.tools.bag_report`, ``drvs_report``): the same
 messages give the same summary. Nothing in it reads a clock or /proc: a robot's
 elapsed time counts in ROS time (simulated under ``/use_sim_time``) from the run's
 first status, of any robot, to that robot's newest status up to its arrival or
@@ -17,7 +17,7 @@ world file, where it stopped) reaches it, and a bag, as a drvs/RecorderSample.
 publishes it latched on ``~samples``, keeps a one-line progress report in
 ``~out/status.line`` (``run_scenario.sh`` shows it), and on shutdown publishes
 a final sample and writes ``~out/summary.json``, ``~out/trace.json`` (trajectories,
-plans, re-plan points, humans' paths) and ``~out/run.png`` (:func:`drvs.report.write_report`).
+plans, re-plan points, humans' paths) and ``~out/run.png`` (:func:`drvs.sim.report.write_report`).
 
 Parameters: :class:`RecorderSettings` (the README's table is generated from it).
 
@@ -51,12 +51,13 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.guard import RESTART, LoopGuard
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, ServerStats, VisionSystemStats
-from drvs.report import CAMERA_FIGURES, ROBOT_FIGURES, SERVER_FIGURES, RunRecord, write_report
 from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
-from drvs.settings import POSITIVE, REQUIRED, Settings, param
-from drvs.world import World, load_world
+from drvs.sim.report import CAMERA_FIGURES, ROBOT_FIGURES, SERVER_FIGURES, RunRecord, write_report
+from drvs.sim.world import World
+from drvs.sim.world_file import load_world
 
 CLOCK_TICKS = os.sysconf('SC_CLK_TCK')
 TRACE_STEP = 0.01

@@ -24,14 +24,14 @@ How it asks (``~requests``):
   when it heard nothing of itself for a quarter of ``~fix_timeout`` (standing
   still, :func:`watch_schedule`); when
   the mission ends (arrived, failed, shutdown) every watch is cancelled, best
-  effort (:mod:`drvs.watch_schedule`). A vision system's outlines stand until it
+  effort (:mod:`drvs.robot.watch_schedule`). A vision system's outlines stand until it
   replaces them, or for the watch's duration at most.
 - ``poll``: the paper's one-shot requests, drvs/DetectObjectBoundary on
   ``~drvs_service``, a round of every role each control tick (the station every
-  ``~station_period`` once found; :mod:`drvs.request_schedule`). Obstacle outlines
+  ``~station_period`` once found; :mod:`drvs.robot.poll_schedule`). Obstacle outlines
   are forgotten ``~obstacle_ttl`` after their vision system last reported them.
 
-Regions of interest (:class:`drvs.perception.RegionPolicy`): itself and its
+Regions of interest (:class:`drvs.robot.perception.RegionPolicy`): itself and its
 station over the whole floor until found; then itself in a box around its
 predicted position grown by its radius plus ``~self_margin``, reaching further
 ahead while it moves (the whole floor again when it loses itself), and the
@@ -39,9 +39,9 @@ station in its box plus ``~self_margin``; obstacles in the box spanned by itself
 and the station plus ``~roi_margin`` (the paper's section 4.3). A watch moves
 only when the robot nears the edge of its region, so a moving robot sends few
 calls. Callbacks may come from several vision systems, in any order, late or
-twice (:mod:`drvs.perception`). Obstacle outlines go into an occupancy grid
-inflated by ``~robot_radius`` (:mod:`drvs.occupancy`); changed cells feed D* Lite,
-and the controller (:mod:`drvs.controller`) drives along the plan, predicting its
+twice (:mod:`drvs.robot.perception`). Obstacle outlines go into an occupancy grid
+inflated by ``~robot_radius`` (:mod:`drvs.robot.occupancy`); changed cells feed D* Lite,
+and the controller (:mod:`drvs.robot.controller`) drives along the plan, predicting its
 position between fixes from the velocities it commanded. Once arrived or failed
 it stops moving and stops asking DRVS (with ``~once`` it exits).
 
@@ -50,12 +50,12 @@ the schedule and a requester thread sends what the schedule says, one call at a
 time, each call limited to ``~request_timeout``: a slow, hung or absent DRVS
 delays the answers, never a control tick, and the loop keeps publishing
 ``~cmd_vel`` from the controller's prediction. How DRVS answers (``status`` of
-the response, :mod:`drvs.status`):
+the response, :mod:`drvs.common.status`):
 
 - ``ACCEPTED``: forwarded to (or the watch served by) ``vision_systems`` vision
   systems (maybe none).
 - ``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, and a call that fails (server down,
-  timed out): that role is asked again after :func:`drvs.retry.retry_delay`
+  timed out): that role is asked again after :func:`drvs.common.retry.retry_delay`
   seconds, never before the response's ``retry_after``, backing off up to
   ``~retry_cap`` while it keeps failing, with jitter. This never ends the mission;
   the robot's own deadlines do (no fix for ``~fix_timeout``). A status code the
@@ -71,7 +71,7 @@ Time: every deadline and the control loop's pace are ROS time, so under
 ``/use_sim_time`` (a world with a ``real_time_factor`` below 1) the robot ticks
 ``~rate`` times per simulated second and waits for ``/clock`` before it starts.
 
-Background loops (control, requester) are guarded (:class:`drvs.guard.LoopGuard`):
+Background loops (control, requester) are guarded (:class:`drvs.common.guard.LoopGuard`):
 an unexpected exception in the control loop fails the node (exit code 1); the
 requester is restarted, and fails the node if it keeps failing.
 
@@ -99,7 +99,7 @@ robot's ``self`` model is an ``apriltag``, also tag_pose (x, y, heading of its n
 fix: the heading seen by the cameras, not predicted) and tag_stamp (when those
 frames were taken).
 ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz): status ``drvs: <node name>``,
-hardware_id the robot (the node's base name; :func:`drvs.health.robot_health`). ERROR
+hardware_id the robot (the node's base name; :func:`drvs.common.health.robot_health`). ERROR
 once failed (the reason); WARN while blocked, without a fix yet, with its newest fix older
 than half ``~fix_timeout``, or when its last ``self`` request reached no vision system;
 OK otherwise, and once arrived. Values: state, reason, fix age (from the frames' stamp),
@@ -121,12 +121,14 @@ from nav_msgs.msg import OccupancyGrid, Path
 from shapely.geometry import Point, Polygon
 from shapely.ops import unary_union
 
-from drvs.controller import ARRIVED, ARRIVING, FAILED, FINAL_STATES, Controller, ControllerSettings
-from drvs.guard import RESTART, SHUTDOWN, LoopGuard
-from drvs.health import Health, robot_health
+from drvs.common.guard import RESTART, SHUTDOWN, LoopGuard
+from drvs.common.health import Health, robot_health
+from drvs.common.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, one_of, param
+from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
-from drvs.occupancy import CostGrid, GridSpec, MapPublishing, ObstacleMemory
-from drvs.perception import (
+from drvs.robot.controller import ARRIVED, ARRIVING, FAILED, FINAL_STATES, Controller, ControllerSettings
+from drvs.robot.occupancy import CostGrid, GridSpec, MapPublishing, ObstacleMemory
+from drvs.robot.perception import (
     FLEET_ROLE,
     LOCALISATION_ROLES,
     STATIC_ROLES,
@@ -138,12 +140,14 @@ from drvs.perception import (
     merge_outlines,
     whole_floor,
 )
-from drvs.request_schedule import ACCEPT, RETRY, Request, RequestSchedule
+from drvs.robot.poll_schedule import ACCEPT, RETRY, Request, RequestSchedule
+from drvs.robot.watch_schedule import WatchCall, WatchSchedule
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.messages import robot_status_to_msg
 from drvs.ros.service_client import ServiceCallError, ServiceClient
-from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, one_of, param
+from drvs.sim.world import FleetRobot, World, box_footprint
+from drvs.sim.world_file import load_world
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesResponse,
@@ -152,9 +156,6 @@ from drvs.srv import (
     WatchObjectBoundary,
     WatchObjectBoundaryRequest,
 )
-from drvs.status import name as status_name
-from drvs.watch_schedule import WatchCall, WatchSchedule
-from drvs.world import FleetRobot, World, box_footprint, load_world
 
 WATCH, POLL = 'watch', 'poll'
 """The values of ``~requests``: standing requests, or the paper's one-shot requests every tick."""
@@ -351,7 +352,7 @@ def fleet_robot(world: World, name: str | None, node_name: str) -> FleetRobot:
     """The world's robot named ``name``; by default the one named as the node (its base name),
     else the world's only robot.
 
-    :raises drvs.world.WorldError: no robot of that name (the message lists the known ones).
+    :raises drvs.sim.world.WorldError: no robot of that name (the message lists the known ones).
     """
     if name is not None:
         return world.fleet_robot(name)

@@ -1,7 +1,7 @@
 """The DRVS server node: registry of vision systems, Algorithm 1 matching by capability, forwarding.
 
 Services (in the node's namespace; run it as ``__name:=drvs``). Every response
-carries a ``status`` (:mod:`drvs.status`): ``ACCEPTED``; ``INVALID`` with a
+carries a ``status`` (:mod:`drvs.common.status`): ``ACCEPTED``; ``INVALID`` with a
 message naming the field; ``UNSUPPORTED`` (no registered vision system runs the
 algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
 ``retry_after`` seconds.
@@ -14,10 +14,10 @@ algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
   renew at half of it. ``INVALID`` when the polygon is invalid (fewer than 3
   vertices, a coordinate not finite, zero area, self-intersecting), a name in
   ``algorithms`` is not an algorithm NAME (or there are too many,
-  :func:`drvs.registry.algorithm_names`), the service is unknown to the master
+  :func:`drvs.server.registry.algorithm_names`), the service is unknown to the master
   or not a drvs/DetectObjectBoundary, or the caller is not the node that
   provides it. ``UNAVAILABLE`` while the vision system is ejected after failed
-  forwards (:mod:`drvs.registry`) or when the master does not answer.
+  forwards (:mod:`drvs.server.registry`) or when the master does not answer.
 - ``~detect_object_boundary`` (drvs/DetectObjectBoundary): a robot's request,
   checked in this order. ``INVALID``: the algorithm — in full when the server
   knows its NAME (the built-ins and the plugins installed where the server runs,
@@ -38,12 +38,12 @@ algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
   by the thread at hand (the request's, after its acknowledgement, or the one that
   saw the previous forward to that vision system end) and one thread, the reply
   loop (:class:`ReplyLoop`), waits for every reply; connecting (and watch
-  forwards) is left to a bounded pool of workers (:class:`drvs.dispatch.Dispatcher`).
+  forwards) is left to a bounded pool of workers (:class:`drvs.server.dispatch.Dispatcher`).
   ``BUSY`` when the pool is full; ``UNAVAILABLE`` when the master does not answer,
   or does not list a callback service that it listed within ``~callback_memory``
   seconds (a restarted master, before the robot registered again).
 - ``~watch_object_boundary`` (drvs/WatchObjectBoundary): a robot's standing
-  request (a *watch*, :mod:`drvs.watches`), keyed by its caller id and
+  request (a *watch*, :mod:`drvs.server.watch_table`), keyed by its caller id and
   ``request_id``. ``INVALID``: ``request_id`` empty or too long, ``duration`` not
   finite or negative, and for a watch to stand (``duration`` > 0) ``period`` not
   finite or not positive and the same checks as ``~detect_object_boundary``
@@ -66,7 +66,7 @@ algorithm); or a temporary ``BUSY`` / ``RATE_LIMITED`` / ``UNAVAILABLE`` with
   forward counts like a failed request forward; a refused one is logged.
 
 All three services limit each caller (its caller id) to ``~max_requests_per_s``
-with bursts of ``~burst`` (a token bucket per caller, :mod:`drvs.rate_limit`,
+with bursts of ``~burst`` (a token bucket per caller, :mod:`drvs.server.rate_limit`,
 shared by the three); the excess is refused with ``RATE_LIMITED``.
 
 Topics: ``~stats`` (drvs/ServerStats, latched): the server's counters (requests,
@@ -81,7 +81,7 @@ latched, frame ``map``; :mod:`drvs.ros.markers`): a DELETEALL, then every regist
 field of view's outline and name, for RViz.
 
 Topic ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz): status ``drvs: <node
-name>``, hardware_id the host (:func:`drvs.health.server_health`). ERROR when the
+name>``, hardware_id the host (:func:`drvs.common.health.server_health`). ERROR when the
 forwarding pool is full (requests refused ``BUSY``); WARN when no vision system is
 registered, the pool is more than 80 % full, requests were refused ``BUSY`` or
 ``RATE_LIMITED`` in the last second, or a vision system is ejected; OK otherwise.
@@ -93,7 +93,7 @@ Parameters: the fields of :class:`ServerSettings`, each declared with its defaul
 meaning and range; README.md's drvs_server table is generated from them.
 
 Background loops (lease expiry, registry publisher, watches, stats) are guarded
-(:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
+(:class:`drvs.common.guard.LoopGuard`): an unexpected exception is logged with its
 traceback and the loop restarts; one that keeps failing shuts the node down
 with exit code 1. The watch loop follows every change of the registry and runs
 the watches' expiries and one-shots on ROS time. Logs: info for register (with
@@ -122,24 +122,21 @@ import rospy
 from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, AlgorithmSet, default_algorithms, split_algorithm
-from drvs.client_cache import ClosingCache
-from drvs.counters import PeriodCounts
-from drvs.dispatch import Busy, Dispatcher
-from drvs.guard import RESTART, LoopGuard
-from drvs.health import Health, server_health
+from drvs.common.client_cache import ClosingCache
+from drvs.common.counters import PeriodCounts
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.health import Health, server_health
+from drvs.common.settings import NON_NEGATIVE, POSITIVE, ParamError, Settings, at_least, param
+from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
+from drvs.common.validation import (
+    ValidationError,
+    field_of_view_polygon,
+    global_ros_name,
+    region_of_interest,
+    ros_name,
+)
 from drvs.msg import Registry as RegistryMsg
 from drvs.msg import ServerStats
-from drvs.rate_limit import RateLimiter
-from drvs.registry import (
-    CHANGED,
-    MOVED,
-    NOT_REGISTERED,
-    REGISTERED,
-    RENEWED,
-    Registration,
-    Registry,
-    algorithm_names,
-)
 from drvs.ros.conversions import box_to_msg, msg_to_box, polygon_to_points, refusal_to_detect_response
 from drvs.ros.diagnostics import DiagnosticsPublisher
 from drvs.ros.markers import registry_markers
@@ -153,7 +150,28 @@ from drvs.ros.service_client import (
     UnknownService,
     probe_service,
 )
-from drvs.settings import NON_NEGATIVE, POSITIVE, ParamError, Settings, at_least, param
+from drvs.server.dispatch import Busy, Dispatcher
+from drvs.server.rate_limit import RateLimiter
+from drvs.server.registry import (
+    CHANGED,
+    MOVED,
+    NOT_REGISTERED,
+    REGISTERED,
+    RENEWED,
+    Registration,
+    Registry,
+    algorithm_names,
+)
+from drvs.server.watch_table import (
+    CANCELLED,
+    NOT_STANDING,
+    ONE_SHOT,
+    WITHDRAWAL,
+    Forward,
+    Watch,
+    WatchTable,
+    watch_terms,
+)
 from drvs.srv import (
     CallbackCoordinates,
     DetectObjectBoundary,
@@ -164,24 +182,6 @@ from drvs.srv import (
     WatchObjectBoundary,
     WatchObjectBoundaryRequest,
     WatchObjectBoundaryResponse,
-)
-from drvs.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED, Refusal, name
-from drvs.validation import (
-    ValidationError,
-    field_of_view_polygon,
-    global_ros_name,
-    region_of_interest,
-    ros_name,
-)
-from drvs.watches import (
-    CANCELLED,
-    NOT_STANDING,
-    ONE_SHOT,
-    WITHDRAWAL,
-    Forward,
-    Watch,
-    WatchTable,
-    watch_terms,
 )
 
 __all__ = ['ServerSettings', 'DrvsServer']

@@ -4,14 +4,14 @@ For each vision system of a world file it publishes what a real camera driver
 would: colour images, aligned depth images, compressed images, CameraInfo and the
 pose of the optical frame on tf, so that a consumer (a vision system in topic
 mode, ``image_view``, ``rviz``) cannot tell it from hardware. The images are
-rendered from one PyBullet copy of the world (:class:`drvs.scene.Scene`) kept in
+rendered from one PyBullet copy of the world (:class:`drvs.sim.scene.Scene`) kept in
 step with world_sim's ``/world_sim/poses`` (static at the world file's poses while
 world_sim is absent). A camera with ``distortion`` in its world entry renders the
-larger canvas of its lens and publishes the distorted view (:mod:`drvs.lens`).
+larger canvas of its lens and publishes the distorted view (:mod:`drvs.sim.lens`).
 
 A camera is rendered only while someone subscribes to its colour, depth or
 compressed image (checked every cycle), at ``~rate``; the cameras take turns in one
-guarded loop (:class:`drvs.guard.LoopGuard`: PyBullet is not thread-safe). When
+guarded loop (:class:`drvs.common.guard.LoopGuard`: PyBullet is not thread-safe). When
 rendering takes longer than a cycle the loop publishes as fast as it can, without
 a burst to catch up. Every image is stamped with the moment it shows: the stamp of
 the poses message it was rendered from, or the render time while no poses have
@@ -44,7 +44,7 @@ tf frames:
     the ``frame_id`` of its images. A fixed camera's on ``/tf_static`` at start; one on a
     moving mount (``waypoints`` and ``speed``) on ``/tf`` with each image's stamp, sent
     before the image. A mount starts its waypoint loop when the node starts (as a vision
-    system in render mode does: :func:`drvs.simulation.mount_position`).
+    system in render mode does: :func:`drvs.sim.simulation.mount_position`).
 """
 
 from __future__ import annotations
@@ -62,16 +62,18 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from drvs.camera import PinholeCamera
-from drvs.guard import RESTART, LoopGuard
-from drvs.lens import Lens
-from drvs.optics import intrinsics_of
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
-from drvs.scene import TINY_RENDERER_SAMPLE, Frame, Scene
-from drvs.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
-from drvs.simulation import mount_position
-from drvs.world import Camera, load_world
+from drvs.sim.lens import Lens
+from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
+from drvs.sim.simulation import mount_position
+from drvs.sim.world import Camera
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.frame import Frame
+from drvs.vision.optics import intrinsics_of
 
 COMPRESSIONS = ('jpeg', 'png')
 SLOW_LOG_PERIOD = 10.0
@@ -218,7 +220,7 @@ class SimCameraNode:
         for config in selected_cameras(self.world, params.camera_names):
             try:
                 self.feeds.append(Feed(config))
-            except ValueError as error:  # a lens that cannot be simulated (drvs.lens)
+            except ValueError as error:  # a lens that cannot be simulated (drvs.sim.lens)
                 raise ValueError(f'{self.world.path}: vision_systems {config.name}: {error}') from None
         self.scene: Scene | None = None
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene

@@ -3,7 +3,7 @@
 Shared by the nodes that put the simulation on tf: sim_camera and a vision system in
 render mode (``map`` -> ``<camera>_optical_frame``, :func:`camera_transform`) and
 world_sim (``map`` -> ``<body name>``, :func:`body_transform`). The optical frame
-follows REP-103 (z forward, x right, y down; :func:`drvs.optics.optical_pose_of`);
+follows REP-103 (z forward, x right, y down; :func:`drvs.vision.optics.optical_pose_of`);
 a body's frame stands on the floor at its centre, x along its heading.
 """
 
@@ -14,9 +14,9 @@ import math
 import rospy
 from geometry_msgs.msg import TransformStamped
 
-from drvs.camera import PinholeCamera
-from drvs.optics import optical_pose_of
-from drvs.transforms import quaternion_from_matrix
+from drvs.common.transforms import quaternion_from_matrix
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import optical_pose_of
 
 __all__ = ['MAP_FRAME', 'body_transform', 'camera_transform', 'optical_frame', 'transform_message']
 

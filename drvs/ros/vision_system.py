@@ -25,7 +25,7 @@ Its frames come from one of two sources (:mod:`drvs.ros.frame_sources`):
 
 A request is validated and acknowledged at once; a worker then takes a frame,
 runs the algorithm, puts the outlines on the floor in ``map``
-(:mod:`drvs.vision`) and, only if it found at least one object, calls the
+(:mod:`drvs.vision.pipeline`) and, only if it found at least one object, calls the
 robot back with the frame's stamp (the moment it shows). Requests that share a
 frame and an algorithm string run the algorithm once (:class:`FrameDetections`).
 
@@ -39,7 +39,7 @@ then and none while nobody watches, runs each watch's algorithm on its region an
 calls back as for a request: every period when something was found, or with
 ``changes_only`` only when the outlines moved beyond ``~change_tolerance``, plus
 one callback with no objects when what it had reported is gone. The bookkeeping
-and the rules are :mod:`drvs.watch_runner`'s.
+and the rules are :mod:`drvs.vision.watch_runner`'s.
 
 Frames from a topic: a request uses the newest frame if it is younger than
 ``~max_frame_age``, otherwise it waits for the next one up to
@@ -58,12 +58,12 @@ of view changes by more than ``~move_threshold`` (a camera on a moving mount:
 removed (empty field of view) on a clean shutdown. While the server is unreachable or
 refuses with a temporary status (``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, e.g.
 ejected after failed forwards) it retries after the response's ``retry_after``,
-with jitter and growing backoff (:func:`drvs.retry.retry_delay`, at most
+with jitter and growing backoff (:func:`drvs.common.retry.retry_delay`, at most
 ``~retry_period`` beyond ``retry_after``); after ``INVALID`` it logs the reason as
 an error and retries every ``~retry_period``.
 
 Background loops (registration, workers, watches, debug view) are guarded
-(:class:`drvs.guard.LoopGuard`): an unexpected exception is logged with its
+(:class:`drvs.common.guard.LoopGuard`): an unexpected exception is logged with its
 traceback and the loop restarts; one that keeps failing shuts the node down
 (exit code 1).
 
@@ -96,7 +96,7 @@ Topics and services:
     the server's, next to ``~register_service``, where it publishes the fields of view.
 ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz)
     Status ``drvs: <node name>``, hardware_id the camera's name
-    (:func:`drvs.health.vision_system_health`): ERROR for a stale topic feed (or no frame
+    (:func:`drvs.common.health.vision_system_health`): ERROR for a stale topic feed (or no frame
     yet) and for a registration refused ``INVALID``; WARN when not registered (why: the
     server's refusal or the failed call), the request queue nearly full, or callbacks
     failed in the last second; OK otherwise. Values: registered, source, frame age,
@@ -127,12 +127,25 @@ from sensor_msgs.msg import Image
 from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmError, load_algorithms
-from drvs.client_cache import ClosingCache
-from drvs.counters import PeriodCounts
-from drvs.guard import RESTART, LoopGuard
-from drvs.health import Health, vision_system_health
+from drvs.common.client_cache import ClosingCache
+from drvs.common.counters import PeriodCounts
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.health import Health, vision_system_health
+from drvs.common.retry import retry_delay
+from drvs.common.settings import (
+    NON_NEGATIVE,
+    POSITIVE,
+    REQUIRED,
+    ParamError,
+    Settings,
+    at_least,
+    one_of,
+    param,
+)
+from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
+from drvs.common.status import name as status_name
+from drvs.common.validation import ValidationError, request_fields
 from drvs.msg import VisionSystemStats
-from drvs.retry import retry_delay
 from drvs.ros.conversions import (
     msg_to_box,
     points_to_detected_object,
@@ -144,8 +157,7 @@ from drvs.ros.frame_sources import FrameUnavailable, RenderSource, TopicSource
 from drvs.ros.markers import detection_markers, markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.service_client import ServiceCallError, ServiceClient
-from drvs.scene import Frame
-from drvs.settings import NON_NEGATIVE, POSITIVE, REQUIRED, ParamError, Settings, at_least, one_of, param
+from drvs.sim.world_file import load_world
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -156,12 +168,9 @@ from drvs.srv import (
     WatchObjectBoundary,
     WatchObjectBoundaryResponse,
 )
-from drvs.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
-from drvs.status import name as status_name
-from drvs.validation import ValidationError, request_fields
-from drvs.vision import draw_detections, in_region, on_floor
-from drvs.watch_runner import Terms, WatchRunner, parse_watch
-from drvs.world import load_world
+from drvs.vision.frame import Frame
+from drvs.vision.pipeline import draw_detections, in_region, on_floor
+from drvs.vision.watch_runner import Terms, WatchRunner, parse_watch
 
 DEFAULT_LEASE = 10.0
 """Seconds assumed when a server grants no lease (0): renew every 5 s."""
@@ -326,7 +335,7 @@ class VisionSystemParams(Settings):
 
 @dataclass(frozen=True)
 class Job:
-    """A one-shot request, queued for a worker. Like a watch's :class:`drvs.watch_runner.Terms`, it
+    """A one-shot request, queued for a worker. Like a watch's :class:`drvs.vision.watch_runner.Terms`, it
     names the algorithm (parsed), the callback service and the request id a callback carries."""
 
     algorithm: object
@@ -337,11 +346,11 @@ class Job:
 
 
 class FrameDetections:
-    """The objects found on the newest frame, per algorithm string (:func:`drvs.vision.on_floor`).
+    """The objects found on the newest frame, per algorithm string (:func:`drvs.vision.pipeline.on_floor`).
 
-    Requests that share a frame (``~max_frame_age``, :class:`drvs.vision.FrameCache`) and
+    Requests that share a frame (``~max_frame_age``, :class:`drvs.vision.pipeline.FrameCache`) and
     ask with the same algorithm detect once, as the watches due at one time do; each
-    request then only clips them to its region (:func:`drvs.vision.in_region`). Not for
+    request then only clips them to its region (:func:`drvs.vision.pipeline.in_region`). Not for
     algorithms with memory (``streaming``): what they find depends on what they have seen.
     Thread-safe: ``FrameDetections._lock`` guards the frame and its objects; detection
     runs outside it (two workers may detect at once; the newer frame's objects are kept).
@@ -354,7 +363,7 @@ class FrameDetections:
         self._objects: dict[str, list] = {}  # algorithm text -> on_floor(self._frame, algorithm)
 
     def on_floor(self, frame: Frame, algorithm) -> list:
-        """:func:`drvs.vision.on_floor` of ``frame`` and ``algorithm`` (a parsed algorithm)."""
+        """:func:`drvs.vision.pipeline.on_floor` of ``frame`` and ``algorithm`` (a parsed algorithm)."""
         if algorithm.algorithm.streaming:
             return on_floor(frame, algorithm)
         with self._lock:

@@ -3,17 +3,17 @@
 It builds a world file in PyBullet (DIRECT), walks every ``human`` object around
 its waypoint loop at its speed, drives each robot's body from ``/<name>/cmd_vel``
 (x, y velocity in ``map``, capped at the robot's speed, stopping at obstacles, the
-other robots and the floor's edge, counting contacts; see :mod:`drvs.simulation`)
+other robots and the floor's edge, counting contacts; see :mod:`drvs.sim.simulation`)
 and publishes every body's pose.
 
 Time: in real time (``/use_sim_time`` unset or false) everything is stamped with the
 wall time, as by any node. With ``/use_sim_time`` true, world_sim is the world's clock:
 every step it publishes ``/clock``, which starts at the wall time world_sim started at
 and advances by the wall time elapsed × ``~real_time_factor`` (at most
-:data:`drvs.simulation.MAX_STEP` per step), and stamps everything with it; every other
+:data:`drvs.sim.simulation.MAX_STEP` per step), and stamps everything with it; every other
 node's ``rospy.get_time()`` follows it (their node_main waits for the first ``/clock``
 before it builds them). world_sim keeps its own pacing and stamps on its own
-:class:`drvs.simulation.StepClock` from the wall clock, never on rospy's time, which in
+:class:`drvs.sim.simulation.StepClock` from the wall clock, never on rospy's time, which in
 this node too would follow the ``/clock`` it publishes and would deadlock a wait on it.
 A ``real_time_factor`` below 1 without ``/use_sim_time`` is refused: the other nodes
 would run in real time.
@@ -45,9 +45,9 @@ Topics:
     every robot's. For tests and the scenario recorder only: a robot must never
     subscribe to it. It stays JSON on purpose: it is an observer's view of the
     simulation, not part of the DRVS interface, and its shape follows
-    :meth:`drvs.simulation.Simulation.ground_truth`.
+    :meth:`drvs.sim.simulation.Simulation.ground_truth`.
 
-The simulation loop is guarded (:class:`drvs.guard.LoopGuard`): a step that raises
+The simulation loop is guarded (:class:`drvs.common.guard.LoopGuard`): a step that raises
 is logged with its traceback and the loop restarts; one that keeps failing shuts
 the node down with exit code 1.
 """
@@ -66,13 +66,13 @@ from geometry_msgs.msg import Twist
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from drvs.guard import RESTART, LoopGuard
+from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.settings import POSITIVE, REQUIRED, Range, Settings, param
 from drvs.msg import BodyPoses
 from drvs.ros.messages import body_poses_to_msg, to_time
 from drvs.ros.tf_frames import body_transform
-from drvs.settings import POSITIVE, REQUIRED, Range, Settings, param
-from drvs.simulation import Simulation, StepClock
-from drvs.world import load_world
+from drvs.sim.simulation import Simulation, StepClock
+from drvs.sim.world_file import load_world
 
 FACTOR = Range(lambda value: 0 < value <= 1, 'must be above 0 and at most 1', '0 < x ≤ 1')
 

@@ -2,13 +2,13 @@
 
 Each tag is a flat textured quad at z = 0 on a grey floor plate (a little below it,
 so the two never fight for the depth buffer), with the image of
-:func:`drvs.tag_images.tag_image` (the marker in a white quiet zone one cell wide; a
+:func:`drvs.algorithms.tag_images.tag_image` (the marker in a white quiet zone one cell wide; a
 tag of ``size`` is the black square). Seen from above, the printed top of a tag at
 ``yaw`` 0 points along +y of ``map`` and its left edge is towards -x; ``yaw`` turns
 it counter-clockwise. The quad is an OBJ file written next to the textures.
-The view is lit as :meth:`drvs.scene.Scene.render` lights it (ambient only), so
-the array's pixels follow :data:`drvs.scene.TINY_RENDERER_SAMPLE` and
-``drvs.optics.intrinsics_of(camera, TINY_RENDERER_SAMPLE)`` is its ``K``.
+The view is lit as :meth:`drvs.sim.scene.Scene.render` lights it (ambient only), so
+the array's pixels follow :data:`drvs.sim.scene.TINY_RENDERER_SAMPLE` and
+``drvs.vision.optics.intrinsics_of(camera, TINY_RENDERER_SAMPLE)`` is its ``K``.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pybullet
 
-from drvs.camera import PinholeCamera
-from drvs.scene import render_view
-from drvs.tag_images import quad_side, write_quad, write_tag_image
+from drvs.algorithms.tag_images import quad_side, write_quad, write_tag_image
+from drvs.sim.scene import render_view
+from drvs.vision.camera import PinholeCamera
 
 FAMILY = 'tag36h11'
 FLOOR_DEPTH = 0.01

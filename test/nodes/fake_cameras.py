@@ -33,7 +33,8 @@ import yaml
 from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
-from drvs.client_cache import ClosingCache
+from drvs.common.client_cache import ClosingCache
+from drvs.common.status import ACCEPTED, BUSY
 from drvs.ros.conversions import msg_to_box, points_to_detected_object, points_to_polygon
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
@@ -44,7 +45,6 @@ from drvs.srv import (
     RegisterVisionService,
     RegisterVisionServiceRequest,
 )
-from drvs.status import ACCEPTED, BUSY
 
 REGISTER_TIMEOUT = 2.0
 RETRY = 0.2  # seconds between registration attempts after a failure, beyond retry_after

@@ -22,7 +22,7 @@ within ``~appear_distance`` metres of them: an obstacle that steps onto its path
 Humans walk their waypoint loops at their speed.
 
 A troubled server: the first ``~refuse_first`` requests are refused with status
-``~refuse_status`` (a :mod:`drvs.status` code, any number), ``~refuse_retry_after``
+``~refuse_status`` (a :mod:`drvs.common.status` code, any number), ``~refuse_retry_after``
 and ``~refuse_message``, and no callback; every acknowledgement is held back
 ``~ack_delay`` seconds (its callbacks are on their way meanwhile): a slow server.
 
@@ -54,9 +54,12 @@ from shapely.geometry import Point as ShapelyPoint
 from shapely.geometry import Polygon, box
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
+from drvs.common.status import ACCEPTED, INVALID, name
 from drvs.msg import RobotStatus
 from drvs.ros.conversions import msg_to_box, points_to_detected_object
 from drvs.ros.messages import robot_status_to_dict
+from drvs.sim.world import box_footprint
+from drvs.sim.world_file import load_world
 from drvs.srv import (
     CallbackCoordinates,
     CallbackCoordinatesRequest,
@@ -65,8 +68,6 @@ from drvs.srv import (
     WatchObjectBoundary,
     WatchObjectBoundaryResponse,
 )
-from drvs.status import ACCEPTED, INVALID, name
-from drvs.world import box_footprint, load_world
 
 CMD_TIMEOUT = 0.5
 STEP = 0.02

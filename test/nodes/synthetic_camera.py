@@ -36,7 +36,7 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Bool
 
-from drvs.transforms import quaternion_from_matrix
+from drvs.common.transforms import quaternion_from_matrix
 
 
 def optical_rotation(eye, target, up):

@@ -1,0 +1,62 @@
+"""Counts by name since start and over the last period, for a node's health report.
+
+A node's ``/diagnostics`` status (:mod:`drvs.common.health`) judges what happened since the
+previous status — refusals, callbacks — and shows the totals beside it.
+:class:`PeriodCounts` keeps both: :meth:`PeriodCounts.add` counts, and
+:meth:`PeriodCounts.take_period` returns what was counted since it was last called
+and starts a new period, so whoever publishes the status once a period is the only
+one who calls it.
+
+No ROS here. Thread-safe: one lock, ``PeriodCounts._lock``, guards both tallies.
+Bounded: beyond ``max_keys`` distinct names, new names are counted under ``other``.
+
+>>> counts = PeriodCounts()
+>>> counts.add('BUSY', 3); counts.add('INVALID')
+>>> counts.take_period(), counts.take_period()
+({'BUSY': 3, 'INVALID': 1}, {})
+>>> counts.totals()
+{'BUSY': 3, 'INVALID': 1}
+"""
+
+from __future__ import annotations
+
+import threading
+
+__all__ = ['OTHER', 'PeriodCounts']
+
+OTHER = 'other'
+"""The name every name beyond ``max_keys`` is counted under."""
+
+
+class PeriodCounts:
+    """Counts per name: in all, and since the last :meth:`take_period`.
+
+    :param max_keys: distinct names kept; further names count under :data:`OTHER`.
+    """
+
+    def __init__(self, max_keys: int = 64):
+        if max_keys < 1:
+            raise ValueError(f'max_keys: must be at least 1, got {max_keys}')
+        self.max_keys = int(max_keys)
+        self._lock = threading.Lock()
+        self._totals: dict[str, int] = {}
+        self._period: dict[str, int] = {}
+
+    def add(self, key: str, number: int = 1) -> None:
+        """Count ``number`` more of ``key``."""
+        with self._lock:
+            if key not in self._totals and len(self._totals) >= self.max_keys:
+                key = OTHER
+            self._totals[key] = self._totals.get(key, 0) + number
+            self._period[key] = self._period.get(key, 0) + number
+
+    def totals(self) -> dict[str, int]:
+        """Every count since construction."""
+        with self._lock:
+            return dict(self._totals)
+
+    def take_period(self) -> dict[str, int]:
+        """The counts since the previous call (since construction for the first), and a new period."""
+        with self._lock:
+            period, self._period = self._period, {}
+            return period

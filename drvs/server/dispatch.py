@@ -1,0 +1,235 @@
+"""A bounded worker pool that sends items to many destinations, one at a time per destination.
+
+The DRVS server forwards each robot request to several vision systems. Each
+vision system has one persistent connection that carries one call at a time,
+so items queue per destination (FIFO) and at most one is in flight per
+destination: a hung destination holds one worker, never more, and the others
+keep flowing. Bounds: ``max_pending`` items in all (queued + in flight) and
+``max_per_destination`` per destination; :meth:`Dispatcher.submit` refuses
+instead of queueing without bound.
+
+Sending without a worker: with ``begin``, an item whose send can start without
+blocking (a call on a connection already open, whose reply another thread will
+wait for: :meth:`drvs.ros.service_client.ServiceClient.start`) is started by the
+thread at hand — the one that queued it (:meth:`Dispatcher.release`) or the one
+that saw the previous item of its destination end — and ends when ``begin``'s
+``done`` is called. Only what cannot start so (a first connection, a
+reconnection) goes to a worker, which may block. A hand-off to a worker costs a
+thread wake-up and a fight for the interpreter lock per item, more than a
+forward itself.
+
+A service handler that queues items and then answers holds them back until its
+answer is out (``submit(..., wake=False)``, then :meth:`Dispatcher.release` on
+the same thread): a send started at once would compete with the answer, and the
+caller would wait for the forward to start before it hears "accepted".
+
+No ROS here; ``send`` and ``begin`` are any callables. They should handle their
+own errors; an exception that escapes one is logged with its traceback, the
+item counts as sent and the pool goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Hashable, Iterable
+
+from drvs.common.status import BUSY, Refusal
+
+logger = logging.getLogger('rosout.' + __name__)
+
+__all__ = ['Dispatcher', 'Busy']
+
+Begin = Callable[[Hashable, object, Callable[[], None]], bool]
+"""``begin(destination, item, done) -> bool``: start sending without blocking; True if it
+started (``done()`` will then be called once, from any thread, when it is over), False to
+leave the item to a worker's ``send``."""
+
+
+class Busy(Refusal):
+    """The pool cannot take the items now; the message says why, ``retry_after`` when to try again."""
+
+    def __init__(self, message: str, retry_after: float):
+        super().__init__(BUSY, message, retry_after)
+
+
+class Dispatcher:
+    """Worker threads that call ``send(destination, item)``, and sends started without them.
+
+    :param send: the call to make; runs on a worker thread.
+    :param workers: number of worker threads.
+    :param max_pending: items queued or in flight, in all.
+    :param max_per_destination: items queued or in flight for one destination.
+    :param retry_after: seconds a refused caller is told to wait (:class:`Busy`).
+    :param begin: sends an item without blocking if it can (:data:`Begin`); tried first.
+    """
+
+    def __init__(
+        self,
+        send: Callable[[Hashable, object], None],
+        workers: int = 8,
+        max_pending: int = 1000,
+        max_per_destination: int = 10,
+        retry_after: float = 0.5,
+        begin: Begin | None = None,
+    ):
+        if workers < 1 or max_pending < 1 or max_per_destination < 1:
+            raise ValueError('workers, max_pending and max_per_destination must be at least 1')
+        self.send = send
+        self.begin = begin
+        self.workers = workers
+        self.max_pending = max_pending
+        self.max_per_destination = max_per_destination
+        self.retry_after = retry_after
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._queues: dict[Hashable, deque] = {}
+        self._in_flight: set[Hashable] = set()
+        self._ready: deque = deque()  # destinations with queued items and nothing in flight
+        self._pending = 0
+        self._threads: list[threading.Thread] = []
+        self._stopping = False
+
+    @property
+    def pending(self) -> int:
+        return self._pending
+
+    def start(self) -> None:
+        for number in range(self.workers):
+            thread = threading.Thread(target=self._work, name=f'dispatch-{number}', daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Drop what is queued and stop the workers (in-flight sends finish or time out on their own)."""
+        with self._lock:
+            self._stopping = True
+            self._pending -= sum(len(queue) for queue in self._queues.values())
+            self._queues.clear()
+            self._ready.clear()
+            self._wake.notify_all()
+        for thread in self._threads:
+            thread.join(timeout)
+
+    def submit(self, destinations: Iterable[Hashable], item: object, wake: bool = True) -> tuple[list, list]:
+        """Queue ``item`` for each destination; return (accepted, skipped) destinations.
+
+        A destination with ``max_per_destination`` items already is skipped. With
+        ``wake`` false nothing is sent yet: call :meth:`release` with ``len(accepted)``
+        soon, on this thread (a worker or a send that ends may take them first).
+
+        :raises Busy: the pool has no room for all the accepted ones (nothing is queued then).
+        """
+        destinations = list(destinations)
+        with self._lock:
+            if self._stopping:
+                raise Busy('busy: the server is shutting down; try again later', self.retry_after)
+            accepted, skipped = [], []
+            for destination in destinations:
+                load = len(self._queues.get(destination, ())) + (destination in self._in_flight)
+                (skipped if load >= self.max_per_destination else accepted).append(destination)
+            if self._pending + len(accepted) > self.max_pending:
+                raise Busy(
+                    f'busy: {self._pending} forwards pending, {len(accepted)} more would pass the limit of '
+                    f'{self.max_pending}; try again later',
+                    self.retry_after,
+                )
+            for destination in accepted:
+                queue = self._queues.setdefault(destination, deque())
+                queue.append(item)
+                if len(queue) == 1 and destination not in self._in_flight:
+                    self._ready.append(destination)
+            self._pending += len(accepted)
+            if wake:
+                self._wake.notify(len(accepted))
+            return accepted, skipped
+
+    def release(self, count: int) -> None:
+        """Send up to ``count`` items that are ready (queued with ``submit(..., wake=False)``):
+        each is started on this thread if ``begin`` can, else left to a worker."""
+        if self.begin is None:
+            with self._lock:
+                self._wake.notify(count)
+            return
+        for _ in range(count):
+            with self._lock:
+                if not self._ready or self._stopping:
+                    return
+                destination = self._ready.popleft()
+                item = self._queues[destination].popleft()
+                self._in_flight.add(destination)
+            self._begin_or_hand_over(destination, item)
+
+    def drop(self, destination: Hashable) -> int:
+        """Forget the queued items of ``destination`` (e.g. it was removed); return how many."""
+        with self._lock:
+            queue = self._queues.pop(destination, None)
+            if not queue:
+                return 0
+            self._pending -= len(queue)
+            try:
+                self._ready.remove(destination)
+            except ValueError:
+                pass  # in flight: not in the ready list
+            return len(queue)
+
+    def _begin(self, destination: Hashable, item: object) -> bool:
+        """Try ``begin``; True if the item is on its way or done with (an exception is logged)."""
+        try:
+            return self.begin(destination, item, lambda: self._finished(destination))
+        except Exception:
+            logger.exception('sending to %s failed unexpectedly', destination)
+            self._finished(destination)
+            return True
+
+    def _begin_or_hand_over(self, destination: Hashable, item: object) -> None:
+        """Start ``destination``'s in-flight ``item`` with ``begin``, or give it back to the workers."""
+        if self._begin(destination, item):
+            return
+        with self._lock:
+            self._in_flight.discard(destination)
+            queue = self._queues.get(destination)
+            if queue is None or self._stopping:  # dropped meanwhile: so is the item
+                self._pending -= 1
+                return
+            queue.appendleft(item)
+            self._ready.appendleft(destination)
+            self._wake.notify()
+
+    def _finished(self, destination: Hashable) -> None:
+        """The item in flight to ``destination`` is done with: start its next one, if any."""
+        with self._lock:
+            self._in_flight.discard(destination)
+            self._pending -= 1
+            queue = self._queues.get(destination)
+            if not queue:
+                if queue is not None:
+                    del self._queues[destination]
+                return
+            if self.begin is None or self._stopping:
+                self._ready.append(destination)
+                self._wake.notify()
+                return
+            item = queue.popleft()
+            self._in_flight.add(destination)
+        self._begin_or_hand_over(destination, item)
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                while not self._ready and not self._stopping:
+                    self._wake.wait()
+                if self._stopping:
+                    return
+                destination = self._ready.popleft()
+                queue = self._queues[destination]
+                item = queue.popleft()
+                self._in_flight.add(destination)
+            if self.begin is not None and self._begin(destination, item):
+                continue
+            try:
+                self.send(destination, item)
+            except Exception:
+                logger.exception('sending to %s failed unexpectedly', destination)
+            self._finished(destination)

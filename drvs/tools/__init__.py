@@ -1,0 +1,1 @@
+"""Command-line tools: drvs_ask, drvs_calibrate, drvs_check_world, drvs_report (see docs/)."""
