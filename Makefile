@@ -49,7 +49,7 @@ format: setup
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-# README.md's parameter tables, from the nodes' settings dataclasses (test/test_param_docs.py checks them).
+# README.md's parameter tables, from the nodes' settings dataclasses (test/project/test_param_docs.py checks them).
 docs: setup
 	$(PY) -m drvs.ros.param_docs --write README.md
 

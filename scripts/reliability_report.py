@@ -5,7 +5,7 @@
     .venv/bin/python scripts/reliability_report.py --soak    # the slow variants too
     .venv/bin/python scripts/reliability_report.py --soak --slow-log out/soak.jsonl  # (make soak)
 
-The suites are test/test_faults.py, test_load.py, test_hostile_input.py,
+The suites are test/live/test_faults.py, test_load.py, test_hostile_input.py,
 test_security.py and test_master_restart.py; those not there yet are named in
 the report and skipped. pytest runs with ``DRVS_RELIABILITY_LOG`` set to a
 temporary file, in which each test leaves one line (drvs.testing.reliability_log);
@@ -34,11 +34,11 @@ from drvs.testing.reliability_table import read_lines, replace_block, report, su
 
 REPO = Path(__file__).resolve().parents[1]
 SUITES = [
-    'test/test_faults.py',
-    'test/test_load.py',
-    'test/test_hostile_input.py',
-    'test/test_security.py',
-    'test/test_master_restart.py',
+    'test/live/test_faults.py',
+    'test/live/test_load.py',
+    'test/live/test_hostile_input.py',
+    'test/live/test_security.py',
+    'test/live/test_master_restart.py',
 ]
 NO_TESTS_COLLECTED = 5
 

@@ -5,7 +5,7 @@
 
 Each node's table lies between ``<!-- params:NODE:begin -->`` and
 ``<!-- params:NODE:end -->``; one row per field of its settings dataclass, as
-declared with :func:`drvs.common.settings.param`. ``test/test_param_docs.py`` fails
+declared with :func:`drvs.common.settings.param`. ``test/project/test_param_docs.py`` fails
 when README.md and the code disagree, so the parameters are documented once.
 """
 

@@ -43,7 +43,7 @@ field of view matches a region when their *interiors* share a point (DE-9IM
 ``T********``): overlapping by any positive area matches; touching along an
 edge or at a corner only does not (the camera would see nothing of the region
 but a line). A region of zero width (a segment or a point) matches the fields
-of view whose interior it enters. ``test/test_matching.py`` checks both paths
+of view whose interior it enters. ``test/unit/server/test_spatial_index.py`` checks both paths
 against GEOS and against brute force.
 
 The index is thread-safe (one internal lock). ``bench/registry.py`` measures it

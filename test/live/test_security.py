@@ -1,6 +1,6 @@
 """Who may change what in DRVS, per-caller rate limits, and where the nodes listen.
 
-Already covered in ``test/test_server.py``, not repeated here:
+Already covered in ``test/live/test_server.py``, not repeated here:
 ``test_invalid_inputs_are_refused_and_the_server_keeps_serving[register]`` — a node
 (``/unnamed``) may not register or move (a new field of view) another node's service,
 may not unregister it, and a camera node (``/thief``) may not claim it; the original

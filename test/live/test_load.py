@@ -523,7 +523,7 @@ def test_the_report_counts_every_suite_and_shows_each_tests_numbers():
         {'suite': 'master', 'test': 'restart', 'what': 'roscore', 'outcome': 'survived', 'lost': 0},
     ]
     text = drvs.testing.reliability_table.report(
-        lines, 'Generated now.', ['`test/test_security.py`: not there yet']
+        lines, 'Generated now.', ['`test/live/test_security.py`: not there yet']
     )
     assert text.splitlines()[:11] == [
         '# Reliability',

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_world import edited
+from test_world_file import edited
 
 from drvs.sim.world import Problem, WorldError
 from drvs.sim.world_file import load_world
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[3]
 CHECK_WORLD = REPO / 'nodes' / 'drvs_check_world'
 SHIPPED = sorted(REPO.glob('worlds/*.yaml')) + sorted(REPO.glob('test/worlds/*.yaml'))
 # Case study 4.2: a 7 x 5.5 floor, two boxes and a human who walks into the gap between them.

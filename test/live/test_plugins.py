@@ -26,7 +26,7 @@ from drvs.testing.detect import detect
 from drvs.testing.harness import parse_echo
 from drvs.vision.frame import Frame
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PLUGIN = REPO / 'test' / 'plugin_example'
 DISTRIBUTION = 'drvs-example-plugin'
 WORLD = 'test/worlds/small.yaml'

@@ -8,7 +8,7 @@ import pytest
 from drvs.common.settings import POSITIVE, REQUIRED, Settings, at_least, one_of, param
 from drvs.ros.param_docs import NODES, block, main, rewritten, table
 
-README = Path(__file__).resolve().parent.parent / 'README.md'
+README = Path(__file__).resolve().parents[2] / 'README.md'
 
 
 @pytest.mark.parametrize('node', NODES)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from drvs.testing import RosHarness, wait_for
 
-README = Path(__file__).resolve().parents[1] / 'README.md'
+README = Path(__file__).resolve().parents[2] / 'README.md'
 SECTION = '## Talking to a running DRVS by hand'
 NUMBER = r'-?\d+(?:\.\d+)?'
 
