@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 
-__all__ = ['OTHER', 'PeriodCounts']
+__all__ = ['OTHER', 'Counters', 'PeriodCounts']
 
 OTHER = 'other'
 """The name every name beyond ``max_keys`` is counted under."""
@@ -60,3 +60,64 @@ class PeriodCounts:
         with self._lock:
             period, self._period = self._period, {}
             return period
+
+
+class Counters:
+    """A node's named counters (its ``~stats``) under one lock, and whether they changed.
+
+    :param names: the counters, each starting at 0; others cannot be added or set.
+
+    >>> stats = Counters(('requests', 'refused'))
+    >>> stats.add(requests=2); stats.take_changed()
+    {'requests': 2, 'refused': 0}
+    >>> stats.take_changed() is None
+    True
+    >>> stats.add(missing=1)
+    Traceback (most recent call last):
+    ...
+    KeyError: "no counter 'missing' (counters: requests, refused)"
+    """
+
+    def __init__(self, names: tuple[str, ...] | list[str]):
+        self.lock = threading.Lock()  # guards _values and _changed
+        self._values: dict[str, int] = dict.fromkeys(names, 0)
+        self._changed = True
+
+    def _check(self, keys) -> None:
+        for key in keys:
+            if key not in self._values:
+                raise KeyError(f'no counter {key!r} (counters: {", ".join(self._values)})')
+
+    def add(self, **increments: int) -> None:
+        """Count ``increments`` more of each named counter."""
+        with self.lock:
+            self._check(increments)
+            for key, number in increments.items():
+                self._values[key] += number
+            self._changed = True
+
+    def set(self, **values: int) -> bool:
+        """Set gauges (``watches`` standing); True if any changed."""
+        with self.lock:
+            self._check(values)
+            changed = any(self._values[key] != value for key, value in values.items())
+            self._values.update(values)
+            self._changed |= changed
+            return changed
+
+    def snapshot(self) -> dict[str, int]:
+        """Every counter now."""
+        with self.lock:
+            return dict(self._values)
+
+    def take_changed(self) -> dict[str, int] | None:
+        """The counters if they changed since the last call (the first call: always), else None."""
+        with self.lock:
+            if not self._changed:
+                return None
+            self._changed = False
+            return dict(self._values)
+
+    def __getitem__(self, key: str) -> int:
+        with self.lock:
+            return self._values[key]
