@@ -133,7 +133,7 @@ out=$(cd "$out" && pwd)
 
 # The world's cameras, robots, whether it runs on simulated time, and the default timeout.
 facts=$("$root/.venv/bin/python" -c 'import math, sys
-from drvs.sim.world import load_world
+from drvs.sim.world_file import load_world
 world = load_world(sys.argv[1])
 print(" ".join(c.name for c in world.vision_systems))
 print(" ".join(r.name for r in world.robots))
