@@ -1,5 +1,6 @@
 """The blind robot's parameters: one field per private ``~parameter``, each declared with its
-default, meaning and range (docs/nodes/blind_robot.md's table is generated from them).
+default, meaning and range; the node's parameter table (docs/nodes/blind_robot.md) is generated
+from them (:mod:`drvs.ros.param_docs`).
 
 No ROS here: :mod:`drvs.ros.params` reads them, :mod:`drvs.robot.mission` builds the robot's
 schedule from them.

@@ -1,7 +1,8 @@
 """The blind robot node: the ROS glue of :mod:`drvs.robot` — it asks DRVS where it is, where its
 station and the obstacles are, plans with D* Lite and drives there (paper, section 4).
 
-Topics, services, parameters, threads and exit codes: docs/nodes/blind_robot.md.
+Topics, services, parameters and exit codes: docs/nodes/blind_robot.md; its threads:
+docs/architecture.md.
 """
 
 from __future__ import annotations
@@ -196,7 +197,7 @@ class BlindRobot:
                     req.algorithm, req.request_id, req.vision_system, stamp, outlines
                 )
             except PerceptionError as error:
-                answer, refused = None, error
+                refused = error  # logged once the lock is released
             else:
                 refused = None
                 if answer is not None and answer.role in self.map.obstacle_roles:
