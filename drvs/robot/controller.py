@@ -32,6 +32,7 @@ import numpy as np
 from drvs.robot.dstar_lite import DStarLite
 from drvs.robot.occupancy import CostGrid, crosses_margin
 from drvs.robot.perception import Fix
+from drvs.robot.robot_status import RobotStatus
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -302,15 +303,16 @@ class Controller:
         return (0.0, 0.0)
 
     # -- reporting ---------------------------------------------------------------------------
-    def status(self) -> dict:
-        return {
-            'state': self.state,
-            'reason': self.reason,
-            'replans': self.replans,
-            'distance_to_goal': (
+    def status(self) -> RobotStatus:
+        """What the controller knows of the mission now (the node adds the rest)."""
+        return RobotStatus(
+            state=self.state,
+            reason=self.reason,
+            replans=self.replans,
+            distance_to_goal=(
                 None if self.position is None or self.goal is None else _distance(self.position, self.goal)
             ),
-            'position': list(self.position) if self.position else None,
-            'goal': list(self.goal) if self.goal else None,
-            'path_length': len(self.path),
-        }
+            position=self.position,
+            goal=self.goal,
+            path_length=len(self.path),
+        )

@@ -1,5 +1,5 @@
 """The typed topic messages <-> core types: the registry, a vision system's counters, the robot's
-status and the simulated world's poses.
+status, pose, plan and map, and the simulated world's poses.
 
 Each ``*_to_msg`` builds the message a node publishes from what the node holds; each
 ``*_to_dict`` (or :func:`body_poses_from_msg`) turns a received message back into plain
@@ -17,11 +17,12 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 
 import genpy
-from geometry_msgs.msg import Point, Pose2D
+from geometry_msgs.msg import Point, Pose, Pose2D, PoseStamped
+from nav_msgs.msg import OccupancyGrid, Path
 from std_msgs.msg import Header
 
 from drvs.msg import BodyPoses, Registry, RobotStatus, VisionSystemEntry, VisionSystemStats
-from drvs.robot import controller
+from drvs.robot import controller, robot_status
 from drvs.ros.conversions import points_to_polygon, polygon_to_points
 from drvs.server.registry import Registration
 
@@ -55,19 +56,7 @@ ROBOT_STATES = {
 }
 """The controller's state names -> drvs/RobotStatus constants."""
 
-ROBOT_COUNTERS = (
-    'replans',
-    'path_length',
-    'requests',
-    'watch_calls',
-    'watches',
-    'failed_requests',
-    'callbacks',
-    'callback_bytes',
-    'refused_callbacks',
-    'superseded',
-    'obstacles',
-)
+ROBOT_COUNTERS = robot_status.COUNTERS
 """The counters of drvs/RobotStatus, in the message's order."""
 
 
@@ -150,28 +139,23 @@ def stats_to_dict(msg: VisionSystemStats) -> dict:
 
 
 # -- /robot/status -----------------------------------------------------------------------------------
-def robot_status_to_msg(status: Mapping) -> RobotStatus:
-    """The robot's status as it assembles it -> drvs/RobotStatus.
+def robot_status_to_msg(status: robot_status.RobotStatus) -> RobotStatus:
+    """The robot's status (:class:`drvs.robot.robot_status.RobotStatus`) -> drvs/RobotStatus.
 
-    ``status`` holds ``state`` (a :mod:`drvs.robot.controller` state name), ``reason``,
-    ``stamp``, ``distance_to_goal``, ``position`` and ``goal`` (None while unknown), the
-    counters of :data:`ROBOT_COUNTERS`, ``refused`` ({status name: count}),
-    ``vision_systems`` ({role: count}) and, with an apriltag self model, ``tag_pose``
-    ([x, y, heading]) and ``tag_stamp``.
+    ``position.theta`` is the heading of ``tag_pose`` (NaN without); what is unknown is NaN, with
+    ``has_position`` and ``has_goal`` false.
     """
-    state = status['state']
+    state = status.state
     if state not in ROBOT_STATES:
         raise ValueError(f'state: expected one of {", ".join(ROBOT_STATES)}, got {state!r}')
-    position, goal = status.get('position'), status.get('goal')
-    tag_pose = status.get('tag_pose')
-    distance = status.get('distance_to_goal')
-    refused = status.get('refused') or {}
-    roles = status.get('vision_systems') or {}
-    msg = RobotStatus(
-        header=header(status['stamp']),
+    position, goal, tag_pose = status.position, status.goal, status.tag_pose
+    distance = status.distance_to_goal
+    refused, roles = status.refused, status.vision_systems
+    return RobotStatus(
+        header=header(status.stamp),
         state=ROBOT_STATES[state],
         state_name=state,
-        reason=status.get('reason') or '',
+        reason=status.reason or '',
         distance_to_goal=NAN if distance is None else float(distance),
         has_position=position is not None,
         position=Pose2D(
@@ -185,15 +169,15 @@ def robot_status_to_msg(status: Mapping) -> RobotStatus:
         roles=sorted(roles),
         role_vision_systems=[int(roles[r]) for r in sorted(roles)],
         tag_pose=Pose2D(*map(float, tag_pose)) if tag_pose is not None else Pose2D(NAN, NAN, NAN),
-        tag_stamp=to_time(status['tag_stamp']) if tag_pose is not None else genpy.Time(),
-        **{key: int(status.get(key, 0)) for key in ROBOT_COUNTERS},
+        tag_stamp=to_time(status.tag_stamp) if tag_pose is not None else genpy.Time(),
+        **{key: int(getattr(status, key)) for key in ROBOT_COUNTERS},
     )
-    return msg
 
 
 def robot_status_to_dict(msg: RobotStatus) -> dict:
-    """drvs/RobotStatus -> the status as :func:`robot_status_to_msg` takes it (``state`` the
-    name, ``None`` for what is unknown; ``tag_pose`` and ``tag_stamp`` only when seen)."""
+    """drvs/RobotStatus -> the fields of :class:`drvs.robot.robot_status.RobotStatus` as plain
+    values for the observers (``position`` and ``goal`` lists, ``None`` for what is unknown),
+    with ``heading`` (``position.theta``); ``tag_pose`` and ``tag_stamp`` only when seen."""
     status = {
         'state': msg.state_name,
         'reason': msg.reason,
@@ -210,6 +194,40 @@ def robot_status_to_dict(msg: RobotStatus) -> dict:
         status['tag_pose'] = [msg.tag_pose.x, msg.tag_pose.y, msg.tag_pose.theta]
         status['tag_stamp'] = msg.tag_stamp.to_sec()
     return status
+
+
+# -- /robot/pose, /robot/path, /robot/map -----------------------------------------------------------
+def pose_to_msg(position: Sequence[float], heading: float | None, stamp: float) -> PoseStamped:
+    """Where the robot believes it is -> geometry_msgs/PoseStamped in ``map``; facing +x when no
+    camera saw its heading."""
+    msg = PoseStamped(header=header(stamp))
+    msg.pose.position.x, msg.pose.position.y = position
+    yaw = heading or 0.0
+    msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    return msg
+
+
+def path_to_msg(points: Iterable[Sequence[float]], stamp: float) -> Path:
+    """The robot's plan (x, y points) -> nav_msgs/Path in ``map``."""
+    msg = Path(header=header(stamp))
+    for x, y in points:
+        pose = PoseStamped(header=msg.header)
+        pose.pose.position.x, pose.pose.position.y = x, y
+        pose.pose.orientation.w = 1.0
+        msg.poses.append(pose)
+    return msg
+
+
+def occupancy_to_msg(values, resolution: float, stamp: float) -> OccupancyGrid:
+    """The robot's grid (rows x cols of OccupancyGrid values, row 0 at y = 0) -> nav_msgs/OccupancyGrid
+    with its origin at (0, 0) of ``map``."""
+    msg = OccupancyGrid(header=header(stamp))
+    msg.info.resolution = resolution
+    msg.info.height, msg.info.width = values.shape
+    msg.info.origin = Pose()
+    msg.info.origin.orientation.w = 1.0
+    msg.data = values.ravel().tolist()
+    return msg
 
 
 # -- /world_sim/poses --------------------------------------------------------------------------------

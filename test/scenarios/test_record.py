@@ -20,6 +20,7 @@ from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
 from drvs.msg import NodeCpu, RecorderSample, Registry, ServerStats, VisionSystemEntry
+from drvs.robot.robot_status import RobotStatus
 from drvs.ros.messages import robot_status_to_msg, stats_to_msg
 from drvs.ros.recorder import RunRecorder, cpu_summary
 from drvs.sim.report import write_report
@@ -108,7 +109,7 @@ def fleet_truth(t, robots):
 
 def status(t, state, replans=0, reason='', **figures):
     msg = robot_status_to_msg(
-        {'state': state, 'stamp': t, 'replans': replans, 'reason': reason, 'position': [1.0, 2.0]}
+        RobotStatus(state=state, stamp=t, replans=replans, reason=reason, position=(1.0, 2.0))
     )
     for key, value in figures.items():
         setattr(msg, key, value)

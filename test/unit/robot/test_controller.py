@@ -163,4 +163,4 @@ def test_arrival_needs_a_fix_taken_after_stopping():
     controller.step(0.3, fix_at((2.56, 1.0), 0.25, 2), station)
     assert controller.state == ARRIVED
     status = controller.status()
-    assert status['state'] == 'arrived' and status['distance_to_goal'] == pytest.approx(0.04)
+    assert status.state == 'arrived' and status.distance_to_goal == pytest.approx(0.04)

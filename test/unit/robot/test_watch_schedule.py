@@ -8,19 +8,11 @@ from shapely.geometry import box
 
 import drvs.robot.watch_schedule
 from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, UNSUPPORTED
+from drvs.robot.mission import request_schedule, watch_schedule
+from drvs.robot.params import RobotParams
 from drvs.robot.perception import Fix, Region, RegionPolicy
 from drvs.robot.poll_schedule import ACCEPT, GIVE_UP, RETRY, Outcome
 from drvs.robot.watch_schedule import CANCEL, NEW, REGION, RENEW, WatchCall, WatchSchedule
-from drvs.ros.robot import (
-    MAX_CELLS,
-    RobotParams,
-    fleet_robot,
-    grid_resolution,
-    request_schedule,
-    watch_schedule,
-)
-from drvs.sim.world import WorldError
-from drvs.sim.world_file import load_world
 from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 7.0, 5.5)
@@ -327,18 +319,6 @@ def test_a_region_for_a_role_without_a_period_is_refused(schedule):
 # -- the robot's watches ---------------------------------------------------------------------------
 
 
-def test_the_robot_drives_the_worlds_robot_named_as_its_node_or_its_only_one():
-    paper, fleet = load_world('worlds/localisation.yaml'), load_world('worlds/crossing.yaml')
-    assert fleet_robot(paper, None, '/anything').name == 'robot'
-    assert fleet_robot(fleet, None, '/robot2').name == 'robot2'
-    assert fleet_robot(fleet, 'robot1', '/robot2').name == 'robot1'
-    robot2 = fleet_robot(fleet, None, '/robot2')
-    assert set(robot2.colour_models) == {'self', 'station', 'obstacle', 'human', 'robot'}
-    with pytest.raises(WorldError) as error:
-        fleet_robot(fleet, None, '/robot')
-    assert "no entry named 'robot' (known: robot1, robot2)" in str(error.value)
-
-
 def test_the_robots_watches():
     schedule = watch_schedule(RobotParams(world='unused.yaml'), (*ROLES, 'robot'))
     assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2, 'robot': 0.2}
@@ -382,9 +362,3 @@ def test_watches_send_ten_times_fewer_calls_than_polling(roles):
     cancels = drain(watches, clock, respond=lambda s, call: s.on_response(call.role, ACCEPTED))
     assert sorted(call.role for call in cancels) == sorted(roles)
     assert polls.sent >= 10 * watches.sent, (polls.sent, watches.sent)
-
-
-def test_the_default_grid_is_5_cm_unless_the_floor_would_need_more_than_max_cells():
-    assert grid_resolution((7.0, 5.5)) == 0.05  # the paper's floor: 15,400 cells
-    resolution = grid_resolution((24.0, 14.0))  # the warehouse
-    assert resolution == 0.1 and (24.0 / resolution) * (14.0 / resolution) <= MAX_CELLS

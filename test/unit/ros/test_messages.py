@@ -1,10 +1,12 @@
 """The typed topic messages: conversions round-trip through serialize/deserialize, the constants
 match the controller's states, every field is documented and ``rosmsg show`` prints them."""
 
+import dataclasses
 import math
 import subprocess
 
 import genpy
+import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
@@ -18,11 +20,15 @@ from drvs.msg import (
     VisionSystemStats,
 )
 from drvs.robot import controller
+from drvs.robot.robot_status import RobotStatus as Status
 from drvs.ros.messages import (
     ROBOT_STATES,
     STATS_COUNTERS,
     body_poses_from_msg,
     body_poses_to_msg,
+    occupancy_to_msg,
+    path_to_msg,
+    pose_to_msg,
     registry_to_dict,
     registry_to_msg,
     robot_status_to_dict,
@@ -112,52 +118,70 @@ ROBOT_COUNTS = {
 }
 
 
+def observed(status):
+    """``status`` as :func:`robot_status_to_dict` gives it back: lists for points, the tag's fields
+    only when seen."""
+    fields = dataclasses.asdict(status)
+    for key in ('position', 'goal', 'tag_pose'):
+        if fields[key] is not None:
+            fields[key] = list(fields[key])
+    if status.tag_pose is None:
+        del fields['tag_pose'], fields['tag_stamp']
+    return fields
+
+
 def test_a_robot_status_with_a_tag_fix_round_trips():
-    status = {
-        'state': controller.MOVING,
-        'reason': '',
-        'stamp': 42.5,
-        'distance_to_goal': 2.5,
-        'position': [1.0, 2.0],
-        'goal': [3.5, 2.0],
+    status = Status(
+        state=controller.MOVING,
+        stamp=42.5,
+        distance_to_goal=2.5,
+        position=(1.0, 2.0),
+        goal=(3.5, 2.0),
         **ROBOT_COUNTS,
-        'refused': {'BUSY': 3, 'RATE_LIMITED': 1},
-        'vision_systems': {'self': 2, 'station': 1, 'obstacle': 0},
-        'tag_pose': [1.01, 1.99, 0.5],
-        'tag_stamp': 42.25,
-    }
+        refused={'BUSY': 3, 'RATE_LIMITED': 1},
+        vision_systems={'self': 2, 'station': 1, 'obstacle': 0},
+        tag_pose=(1.01, 1.99, 0.5),
+        tag_stamp=42.25,
+    )
     msg = serialize_deserialize(robot_status_to_msg(status))
     assert (msg.state, msg.state_name) == (RobotStatus.MOVING, 'moving')
     assert (msg.has_position, msg.has_goal) == (True, True)
     assert (msg.position.x, msg.position.y, msg.position.theta) == (1.0, 2.0, 0.5)  # heading as seen
     assert (msg.refused_statuses, list(msg.refused_counts)) == (['BUSY', 'RATE_LIMITED'], [3, 1])
     assert (msg.roles, list(msg.role_vision_systems)) == (['obstacle', 'self', 'station'], [0, 2, 1])
-    assert robot_status_to_dict(msg) == {**status, 'heading': 0.5}
+    assert robot_status_to_dict(msg) == {**observed(status), 'heading': 0.5}
 
 
 def test_a_robot_status_says_unknown_with_nan_and_flags():
-    status = {
-        'state': controller.LOCALISING,
-        'reason': '',
-        'stamp': 3.0,
-        'distance_to_goal': None,
-        'position': None,
-        'goal': None,
-        **ROBOT_COUNTS,
-        'refused': {},
-        'vision_systems': {},
-    }
+    status = Status(state=controller.LOCALISING, stamp=3.0, **ROBOT_COUNTS)
     msg = serialize_deserialize(robot_status_to_msg(status))
     assert (msg.state, msg.has_position, msg.has_goal) == (RobotStatus.LOCALISING, False, False)
     unknown = (msg.distance_to_goal, msg.position.x, msg.position.theta, msg.goal.x, msg.tag_pose.x)
     assert all(math.isnan(value) for value in unknown)
     assert msg.tag_stamp == genpy.Time()
-    assert robot_status_to_dict(msg) == {**status, 'heading': None}
+    assert robot_status_to_dict(msg) == {**observed(status), 'heading': None}
+
+
+def test_the_robot_status_has_the_messages_fields():
+    """Each field of the message comes from one field of the status, and each field of the status
+    goes into the message."""
+    derived = {
+        'header': 'stamp',
+        'state_name': 'state',
+        'has_position': 'position',
+        'has_goal': 'goal',
+        'refused_statuses': 'refused',
+        'refused_counts': 'refused',
+        'roles': 'vision_systems',
+        'role_vision_systems': 'vision_systems',
+    }
+    from_message = {derived.get(slot, slot) for slot in RobotStatus.__slots__}
+    assert from_message == {field.name for field in dataclasses.fields(Status)}
 
 
 def test_a_robot_status_with_an_unknown_state_is_refused():
     with pytest.raises(ValueError) as raised:
-        robot_status_to_msg({'state': 'lost', 'stamp': 0.0})
+        robot_status_to_msg(Status(state='lost'))
     assert str(raised.value) == (
         "state: expected one of localising, moving, blocked, arriving, arrived, failed, got 'lost'"
     )
@@ -175,6 +199,23 @@ def test_the_state_constants_cover_every_controller_state():
     for state, code in ROBOT_STATES.items():
         assert getattr(RobotStatus, state.upper()) == code
     assert sorted(ROBOT_STATES.values()) == list(range(len(ROBOT_STATES)))
+
+
+def test_the_robots_pose_path_and_map_round_trip_in_map():
+    pose = serialize_deserialize(pose_to_msg((1.5, 2.0), math.pi / 2, stamp=7.5))
+    assert (pose.header.frame_id, pose.header.stamp.to_sec()) == ('map', 7.5)
+    assert (pose.pose.position.x, pose.pose.position.y) == (1.5, 2.0)
+    assert (pose.pose.orientation.z, pose.pose.orientation.w) == pytest.approx((0.5**0.5, 0.5**0.5))
+    assert serialize_deserialize(pose_to_msg((1.5, 2.0), None, 7.5)).pose.orientation.w == 1.0  # +x
+    path = serialize_deserialize(path_to_msg([(0.5, 0.5), (1.0, 0.75)], stamp=7.5))
+    assert [(p.pose.position.x, p.pose.position.y) for p in path.poses] == [(0.5, 0.5), (1.0, 0.75)]
+    assert {(p.header.frame_id, p.pose.orientation.w) for p in path.poses} == {('map', 1.0)}
+    values = np.zeros((2, 3), np.int8)
+    values[1, 2], values[0, 1] = 100, 99
+    grid = serialize_deserialize(occupancy_to_msg(values, 0.05, stamp=7.5))
+    assert (grid.info.width, grid.info.height, grid.info.resolution) == (3, 2, pytest.approx(0.05))  # float32
+    assert (grid.info.origin.position.x, grid.info.origin.orientation.w) == (0.0, 1.0)
+    assert list(grid.data) == [0, 99, 0, 0, 0, 100]  # row-major, row 0 at y = 0
 
 
 def test_body_poses_round_trip_with_the_stamp_of_the_state():

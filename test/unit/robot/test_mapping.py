@@ -1,0 +1,179 @@
+"""The robot's map building: outlines per source -> the cost grid, without the robot, its trail and
+its station; forgetting, lingering and when ``~map`` is due (no ROS, a manual clock)."""
+
+import doctest
+import math
+
+import pytest
+from shapely.geometry import Point, box
+
+import drvs.robot.mapping
+from drvs.robot.dstar_lite import FREE
+from drvs.robot.mapping import (
+    BODY_MARGIN,
+    MAX_CELLS,
+    OWN_TRAIL,
+    MapBuilder,
+    OwnTrail,
+    grid_resolution,
+    own_body,
+)
+from drvs.robot.occupancy import LETHAL
+from drvs.robot.perception import Fix
+from drvs.testing import ManualClock
+
+FLOOR = (4.0, 3.0)
+SIZE = (0.3, 0.3)
+RADIUS = 0.2
+TTL, LINGER = 1.5, 0.5
+
+
+def fix_at(position, stamp=0.0, heading=None, half=0.15):
+    x, y = position
+    outline = box(x - half, y - half, x + half, y + half)
+    return Fix(position, outline, stamp, 1, ('/vs1',), heading)
+
+
+def builder(roles=('obstacle', 'human'), map_period=1.0):
+    return MapBuilder(FLOOR, SIZE, RADIUS, roles, TTL, LINGER, map_period, resolution=0.05)
+
+
+def lethal_at(mapping, point):
+    spec = mapping.grid.spec
+    return mapping.grid.costs[spec.cell_of(point)] == LETHAL
+
+
+def test_the_module_example():
+    result = doctest.testmod(drvs.robot.mapping)
+    assert result.attempted > 0 and result.failed == 0
+
+
+def test_the_default_grid_is_5_cm_unless_the_floor_would_need_more_than_max_cells():
+    assert grid_resolution((7.0, 5.5)) == 0.05  # the paper's floor: 15,400 cells
+    resolution = grid_resolution((24.0, 14.0))  # the warehouse
+    assert resolution == 0.1 and (24.0 / resolution) * (14.0 / resolution) <= MAX_CELLS
+    assert MapBuilder((24.0, 14.0), SIZE, RADIUS, (), TTL, LINGER, 1.0).grid.spec.resolution == 0.1
+    assert MapBuilder((24.0, 14.0), SIZE, RADIUS, (), TTL, LINGER, 1.0, 0.2).grid.spec.resolution == 0.2
+
+
+def test_an_obstacle_reported_goes_into_the_grid_and_the_map_is_due():
+    clock = ManualClock()
+    mapping = builder()
+    mapping.observe('obstacle', '/vs1', [box(2.0, 1.0, 2.4, 1.4)], clock.now)
+    update = mapping.update(clock.now, fix_at((0.5, 0.5)), fix_at((3.5, 2.5)))
+    assert update.changes and update.publish
+    assert mapping.obstacles == 1 and lethal_at(mapping, (2.2, 1.2))
+    assert {cell for cell, _ in update.changes} == {
+        tuple(int(i) for i in cell) for cell in zip(*(mapping.grid.costs != FREE).nonzero(), strict=True)
+    }
+    clock.now += 0.2
+    again = mapping.update(clock.now, fix_at((0.5, 0.5)), fix_at((3.5, 2.5)))
+    assert (again.changes, again.publish) == ([], False)
+
+
+def test_outlines_seen_by_two_vision_systems_are_one_obstacle():
+    mapping = builder()
+    mapping.observe('obstacle', '/vs1', [box(2.0, 1.0, 2.4, 1.4)], 0.0)
+    mapping.observe('obstacle', '/vs2', [box(2.1, 1.1, 2.5, 1.5)], 0.0)
+    mapping.observe('human', '/vs2', [box(1.0, 2.0, 1.2, 2.2)], 0.0)
+    mapping.update(0.0, None, None)
+    assert mapping.obstacles == 2
+
+
+def test_the_robot_and_its_station_are_never_obstacles():
+    mapping = builder()
+    robot, station = fix_at((0.5, 0.5)), fix_at((3.5, 2.5))
+    mapping.observe('obstacle', '/vs1', [robot.outline, station.outline.buffer(0.02)], 0.0)
+    mapping.observe('human', '/vs1', [box(2.0, 1.0, 2.4, 1.4)], 0.0)
+    mapping.update(0.0, robot, station)
+    assert mapping.obstacles == 1
+    assert not lethal_at(mapping, (0.5, 0.5)) and not lethal_at(mapping, (3.5, 2.5))
+
+
+def test_a_tagged_robots_whole_body_is_cut_out_not_just_its_tag():
+    tag = fix_at((1.0, 1.0), heading=math.pi / 4, half=0.05)  # a tag smaller than the robot
+    body = own_body(tag, SIZE)
+    assert body.area == pytest.approx(box(0, 0, *SIZE).buffer(BODY_MARGIN).area)
+    assert body.contains(Point(1.0, 1.27))  # a corner of the yawed body (unyawed: 1.23 at most)
+    assert own_body(fix_at((1.0, 1.0)), SIZE) is None  # no heading: the outline is the body
+    assert own_body(None, SIZE) is None
+    mapping = builder()
+    mapping.observe('human', '/vs1', [box(0.85, 0.85, 1.15, 1.15)], 0.0)  # motion finds the robot moving
+    mapping.update(0.0, tag, None)
+    assert mapping.obstacles == 0
+
+
+def test_another_robot_touching_this_one_keeps_its_own_part():
+    """The fleet's ``robot`` model sees both robots as one blob: this one's body is cut out."""
+    mapping = builder(roles=('obstacle', 'robot'))
+    me = fix_at((1.0, 1.0))
+    mapping.observe('robot', '/vs1', [box(0.85, 0.85, 1.55, 1.15)], 0.0)  # me and a robot at x 1.4
+    mapping.update(0.0, me, None)
+    assert mapping.obstacles == 1
+    assert lethal_at(mapping, (1.45, 1.0)) and not lethal_at(mapping, (1.0, 1.0))
+    plain = builder()
+    plain.observe('obstacle', '/vs1', [box(0.85, 0.85, 1.55, 1.15)], 0.0)
+    plain.update(0.0, me, None)
+    assert plain.obstacles == 0  # another model's blob, mostly the robot (and its trail), is dropped whole
+
+
+def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
+    clock = ManualClock(0.0)
+    mapping = builder()
+    mapping.update(clock.now, fix_at((1.0, 1.0)), None)  # it stood here...
+    clock.now += 1.0
+    ghost = [box(0.9, 0.9, 1.1, 1.1)]  # ...and a background model reports the floor it uncovered
+    mapping.observe('human', '/vs1', ghost, clock.now)
+    mapping.update(clock.now, fix_at((2.0, 1.0), clock.now), None)
+    assert mapping.obstacles == 0
+    clock.now += OWN_TRAIL  # the trail forgets where it stood; a ghost still reported is in the way
+    mapping.observe('human', '/vs1', ghost, clock.now)
+    mapping.update(clock.now, fix_at((2.0, 1.0), clock.now), None)
+    assert mapping.obstacles == 1
+
+
+def test_the_trail_remembers_new_positions_for_keep_seconds():
+    trail = OwnTrail(radius=0.1, keep=4.0)
+    assert trail.update(0.0, None).is_empty
+    trail.update(0.0, fix_at((1.0, 1.0)))
+    shape = trail.update(1.0, fix_at((2.0, 1.0)))
+    assert shape.contains(Point(1.0, 1.0)) and shape.contains(Point(2.0, 1.0))
+    assert trail.update(2.0, fix_at((2.0, 1.0))) is shape  # the same fix again: nothing to redo
+    later = trail.update(4.5, None)
+    assert not later.contains(Point(1.0, 1.0)) and later.contains(Point(2.0, 1.0))
+    assert trail.update(5.5, None).is_empty
+
+
+def test_a_source_not_heard_from_within_ttl_is_forgotten():
+    clock = ManualClock(0.0)
+    mapping = builder()
+    mapping.observe('obstacle', '/vs1', [box(2.0, 1.0, 2.4, 1.4)], clock.now)
+    mapping.update(clock.now, None, None)
+    clock.now += TTL
+    assert mapping.update(clock.now, None, None).changes == []
+    clock.now += 0.01
+    update = mapping.update(clock.now, None, None)
+    assert update.changes and mapping.obstacles == 0 and not lethal_at(mapping, (2.2, 1.2))
+
+
+def test_an_obstacle_reported_gone_lingers_a_little():
+    clock = ManualClock(0.0)
+    mapping = builder()
+    mapping.observe('human', '/vs1', [box(2.0, 1.0, 2.4, 1.4)], clock.now)
+    clock.now += 0.5
+    mapping.observe('human', '/vs1', [], clock.now)  # a person who stopped fades out of a motion model
+    mapping.update(clock.now + LINGER, None, None)
+    assert mapping.obstacles == 1
+    mapping.update(clock.now + LINGER + 0.01, None, None)
+    assert mapping.obstacles == 0
+
+
+def test_the_map_goes_out_at_most_once_per_period_while_it_changes():
+    mapping = builder(map_period=1.0)
+    published = []
+    for tick in range(20):
+        now = tick * 0.1
+        mapping.observe('obstacle', '/vs1', [box(1.0 + 0.1 * tick, 1.0, 1.3 + 0.1 * tick, 1.3)], now)
+        if mapping.update(now, None, None).publish:
+            published.append(now)
+    assert published == pytest.approx([0.0, 1.0])
