@@ -359,7 +359,9 @@ def tag_points(tags: list[TagSpec], seen: dict[int, list[TagSighting]]) -> list[
             ids = ', '.join(map(str, sorted(seen))) if seen else f'none: no {TAG_FAMILY} tag in the image'
             raise CalibrationError(
                 f'tag {tag.id} is not seen in the image (tags seen: {ids}); '
-                'check the --tag ids, and that each tag is whole, flat and in focus'
+                'check the --tag ids, and that each tag is whole, flat and in focus, with a white border '
+                '(quiet zone) around its black square at least two of its cells wide (200 px around an '
+                '800 px tag)'
             )
         if len(sightings) > 1:
             raise CalibrationError(
