@@ -1,20 +1,9 @@
 """``drvs_calibrate``: a camera's pose in ``map`` from one image and floor points, for tf and world files.
 
-The image comes from a file (``--image``) or as one sensor_msgs/Image from a
-running graph (``--topic``). The intrinsics, first match wins:
-
-1. ``--fx --fy --cx --cy`` (all four; ``--distortion k1,k2,p1,p2,k3`` optional);
-2. ``--camera-info``: a camera_calibration_parsers YAML file when it names an existing
-   file or ends in ``.yaml``/``.yml``, otherwise a sensor_msgs/CameraInfo topic
-   (read with ``image_geometry.PinholeCameraModel``);
-3. with ``--topic``: the sibling ``camera_info`` topic (``/cam1/image_raw`` ->
-   ``/cam1/camera_info``).
-
-The tf frame is ``--frame``, else the image's ``frame_id``, else the camera info's,
-else ``NAME_optical_frame`` for ``--name NAME``. The floor points and the solving are
-:mod:`drvs.vision.calibration`'s. Everything taken from the graph shares one ``--timeout``;
-without a master it fails at once. Exit codes: 0 with a pose, 2 on bad input (one
-line on stderr naming the problem), 130 when interrupted.
+The image from a file (``--image``) or one sensor_msgs/Image of a running graph
+(``--topic``); the intrinsics and the tf frame as the options say; the floor points and the
+solving are :mod:`drvs.vision.calibration`'s. Its options, the order in which intrinsics
+and the frame are taken, and its exit codes: docs/tutorials/your-camera.md.
 """
 
 from __future__ import annotations
