@@ -22,8 +22,8 @@ demo: setup
 test-slow: setup
 	$(PY) -m pytest -m slow $(PYTEST_ARGS)
 
-# The reliability suites (faults, load, hostile input, master restart) at small sizes:
-# writes docs/reliability.md and the table between README.md's reliability markers.
+# The reliability suites (faults, load, hostile input, security, master restart) at small sizes:
+# writes their figures into docs/reliability.md (between its reliability markers).
 reliability-report: setup
 	$(PY) scripts/reliability_report.py $(PYTEST_ARGS)
 
@@ -35,11 +35,12 @@ soak: setup
 	DRVS_RELIABILITY_LOG=$(CURDIR)/$(SOAK_LOG) $(PY) -m pytest -m slow $(PYTEST_ARGS); status=$$?; \
 	$(PY) scripts/reliability_report.py --soak --slow-log $(SOAK_LOG) $(PYTEST_ARGS) && exit $$status
 
-# The benchmarks (bench/, issue 16): bench/results/latest.md, latest.json, the plots, and
-# README.md's Performance section. QUICK=1: small sizes, about 2 minutes, into bench/results/quick/
-# (the full results and README stay as they are). BENCH_ARGS='--only wire'.
+# The benchmarks (bench/, issue 16): bench/results/latest.md, latest.json, the plots,
+# docs/performance.md's results and README.md's targets met. QUICK=1: small sizes, about
+# 2 minutes, into bench/results/quick/ (the full results and the docs stay as they are).
+# BENCH_ARGS='--only wire'.
 bench: setup
-	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --readme) $(BENCH_ARGS)
+	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --docs) $(BENCH_ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check .
@@ -49,9 +50,10 @@ format: setup
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-# README.md's parameter tables, from the nodes' settings dataclasses (test/project/test_param_docs.py checks them).
+# The node pages' parameter tables (docs/nodes/NODE.md), from the nodes' settings dataclasses
+# (test/project/test_param_docs.py checks them).
 docs: setup
-	$(PY) -m drvs.ros.param_docs --write README.md
+	$(PY) -m drvs.ros.param_docs --write docs/nodes
 
 clean:
 	rm -rf build *.egg-info drvs/msg drvs/srv out .pytest_cache

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Run the reliability suites, then write the Reliability table to docs/reliability.md and README.md.
+"""Run the reliability suites, then write their figures into docs/reliability.md.
 
     .venv/bin/python scripts/reliability_report.py           # small sizes (make reliability-report)
     .venv/bin/python scripts/reliability_report.py --soak    # the slow variants too
@@ -10,12 +10,12 @@ test_security.py and test_master_restart.py; those not there yet are named in
 the report and skipped. pytest runs with ``DRVS_RELIABILITY_LOG`` set to a
 temporary file, in which each test leaves one line (drvs.testing.reliability_log);
 a suite that fails to import is reported by pytest and the others still run;
-drvs.testing.reliability_table turns the lines into Markdown. README.md's block between
-``<!-- reliability:begin -->`` and ``<!-- reliability:end -->`` gets the summary,
-if the markers are there. ``--slow-log FILE``: the slow variants already ran
-with their lines in FILE (``make soak`` runs them with the rest of the slow
-suite); only the small ones run here, and FILE's lines are added. Other
-arguments go to pytest. The exit status is pytest's (no tests collected counts
+drvs.testing.reliability_table turns the lines into Markdown. The page's block between
+``<!-- reliability:begin -->`` and ``<!-- reliability:end -->`` gets the figures (one
+heading level down); a page without the markers is written whole. ``--slow-log FILE``:
+the slow variants already ran with their lines in FILE (``make soak`` runs them with
+the rest of the slow suite); only the small ones run here, and FILE's lines are added.
+Other arguments go to pytest. The exit status is pytest's (no tests collected counts
 as success); the report is written either way.
 """
 
@@ -66,6 +66,14 @@ def pytest_results(junit: Path) -> tuple[Counter, list[str]]:
     return counts, failed
 
 
+def embedded(page: str) -> str:
+    """The report without its title and one heading level down, for the block of a page with its own."""
+    lines = page.splitlines()
+    if lines and lines[0].startswith('# '):
+        lines = lines[1:]
+    return '\n'.join('#' + line if line.startswith('## ') else line for line in lines).strip('\n')
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--soak', action='store_true', help='include the slow (full-size) variants')
@@ -77,9 +85,6 @@ def main() -> int:
         type=Path,
         default=REPO / 'docs' / 'reliability.md',
         help='the report (docs/reliability.md)',
-    )
-    parser.add_argument(
-        '--readme', type=Path, default=REPO / 'README.md', help='the file whose marked block gets the summary'
     )
     options, pytest_args = parser.parse_known_args()
     if options.slow_log and not options.soak:
@@ -135,19 +140,13 @@ def main() -> int:
         f'{mode}, on a {os.cpu_count()}-core machine; pytest exit status {status}. '
         'Each row is one test; its numbers are counts, seconds, kB (rss) or open descriptors (fds).'
     )
+    page = report(lines, heading, notes)
     options.output.parent.mkdir(parents=True, exist_ok=True)
-    options.output.write_text(report(lines, heading, notes) + '\n')
+    text = options.output.read_text() if options.output.exists() else ''
+    replaced = replace_block(text, embedded(page))
+    options.output.write_text(replaced if replaced is not None else page + '\n')
     print(f'wrote {options.output}')
     table = summary_table(summarise(lines))
-    if options.readme.exists():
-        text = options.readme.read_text()
-        link = os.path.relpath(options.output, options.readme.parent)
-        replaced = replace_block(text, f'{table}\n\nDetails: [{link}]({link}) ({mode}).')
-        if replaced is None:
-            print(f'{options.readme}: no reliability markers, left alone')
-        elif replaced != text:
-            options.readme.write_text(replaced)
-            print(f'updated {options.readme}')
     print(table)
     return 0 if status == NO_TESTS_COLLECTED else status
 

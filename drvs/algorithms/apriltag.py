@@ -1,32 +1,10 @@
 """``apriltag:FAMILY[:ID,ID,...][:h=HEIGHT]``: AprilTags found with OpenCV's aruco module.
 
-FAMILY is one of the AprilTag families of OpenCV 4.6's aruco (tag16h5, tag25h9,
-tag36h10, tag36h11); the optional IDs keep only those tags; ``h=HEIGHT`` is the
-height in metres of the plane the tags lie on (a tag on top of a 0.2 m robot lies
-at 0.2). Without ``h=`` the height is the one the :class:`AprilTag` instance knows
-for the tag's label (``heights``, from the world file), else its ``default_height``.
-
-Each tag found is one :class:`PixelObject` labelled ``FAMILY:ID`` (``tag36h11:3``),
-lying flat at that height (``height``) with its vertex order kept (``keep_order``).
-
-Corner order. The outline is the tag's black square, 4 corners in DRVS corner
-coordinates (OpenCV's + 0.5, :mod:`drvs.vision.optics`): corner 0 is the printed top-left,
-then counter-clockwise as seen from above the tag: top-left, bottom-left,
-bottom-right, top-right. (aruco returns top-left, top-right, bottom-right,
-bottom-left; this is that order reversed after corner 0.) On the floor (``map``,
-x right and y up as seen from above) the outline is counter-clockwise, as every
-DRVS floor outline is.
-
-Heading. A tag's heading (its yaw in ``map``) is the direction from corner 0
-(top-left) to corner 3 (top-right): the printed "right". A tag laid with its
-printed top towards +y and its right towards +x has yaw 0, so a tag mounted on a
-robot turned with it (as :class:`drvs.sim.scene.Scene` renders a world file's ``tag``)
-reads the robot's heading. :func:`tag_pose` gives a tag's centre and heading from
-its outline on the floor.
-
-Corners are refined to sub-pixel accuracy: aruco's ``CORNER_REFINE_CONTOUR``, then
-:func:`drvs.vision.calibration.refine_tag_corners`, which fits a line to each outer edge
-of the black square (through the lens model of the frame's camera): see :func:`find_tags`.
+Each tag found is one :class:`PixelObject` labelled ``FAMILY:ID``, lying flat at its
+height, its four corners in a fixed order (corner 0 the printed top-left, then
+counter-clockwise seen from above); :func:`tag_pose` gives a tag's centre and heading from
+its outline on the floor. The syntax: docs/interface.md ("Algorithms"); corner order and
+refinement: docs/design.md ("The built-in algorithms").
 
 >>> from drvs.algorithms import AlgorithmSet, parse_algorithm
 >>> parsed = parse_algorithm('apriltag:tag36h11:3,7:h=0.2', AlgorithmSet([AprilTag()]))

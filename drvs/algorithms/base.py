@@ -1,26 +1,10 @@
 """What an algorithm is: a name, a parser for its parameters, and a detector that finds objects in a frame.
 
-An algorithm string is ``NAME`` or ``NAME:PARAMS``. The server parses it to refuse
-bad requests, the vision systems to run it and the robots to build it (the paper's
-Discussion: these definitions are part of the API). Every algorithm — the
-built-ins and third-party plugins alike — is an object with:
-
-``name``
-    The NAME it answers to: a letter, then letters, digits or ``_``.
-``syntax``
-    One line for error messages and documentation, e.g. ``apriltag:FAMILY[:ID,ID,...]``.
-``parse(params) -> validated params``
-    ``params`` is the text after the first ``:`` ('' when there is none). Raises
-    :class:`AlgorithmError` whose message names the problem.
-``detect(frame, params) -> list of PixelObject``
-    The objects in a :class:`drvs.sim.scene.Frame` (``rgb``, ``depth`` or None,
-    ``camera``, ``stamp``): each an outline in pixels, optionally a ``label`` and a
-    ``height`` (the object lies flat at that height: its outline is met with that
-    plane rather than the floor).
-``observe(frame)`` (optional)
-    For algorithms with memory (``motion``): called with every frame of the
-    camera's stream while the algorithm is in use, before any ``detect``. ``streaming``
-    is True for them.
+:class:`Algorithm` is the plugin API the built-ins and third-party algorithms share
+(``name``, ``syntax``, ``parse``, ``detect``, and ``observe`` with ``streaming`` for those
+with memory), with :class:`PixelObject` and :class:`AlgorithmError`. The reference for
+writing one: docs/tutorials/adding-an-algorithm.md; the algorithm string:
+docs/interface.md ("Algorithms").
 """
 
 from __future__ import annotations

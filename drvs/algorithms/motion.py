@@ -1,55 +1,10 @@
 """``motion[:MIN_AREA]``: the things that move in a fixed camera's view, by background subtraction.
 
-What it finds
-    Each connected region of at least ``MIN_AREA`` pixels (default
-    :data:`DEFAULT_MIN_AREA`) that differs from a model of the camera's
-    background, learnt from the camera's own frame stream by OpenCV's
-    Gaussian-mixture subtractor (MOG2, shadows off). No colour model: a walking
-    human, a pushed box and a robot on the move are all found, unlabelled
-    (label ''). Outlines are cleaned of speckle by a small morphological opening
-    and closing and simplified like the colour algorithm's.
-
-The stream contract
-    The algorithm has memory (``streaming = True``), so it needs every frame, not
-    only the ones a request is made on. The vision system calls :meth:`Motion.observe`
-    for each frame it renders or receives while ``motion`` requests are being made
-    (a few Hz; the tuning below assumes about :data:`STREAM_RATE`), and for the
-    frame a request uses, before :meth:`Motion.detect`. ``observe`` learns the
-    frame once: the same frame (same stamp, same array) observed again is not
-    learnt twice. ``detect`` reports the moving regions of its frame against the
-    model: with the mask computed when that frame was observed, or, for a frame
-    never observed, without learning from it. Until :data:`WARM_UP` frames have
-    been observed it reports nothing, rather than everything. observe and detect
-    may be called from different threads.
-
-Ghosts
-    Whatever stands still long enough becomes background; when it then moves
-    away, the spot it left differs from the model and shows as moving — a ghost —
-    until the model forgets it. With a history of :data:`HISTORY` frames and a
-    background ratio of :data:`BACKGROUND_RATIO`, a ghost pixel lasts about
-    ln(0.5) / ln(1 - 1/20) = 14 frames after the thing has left it, 2.8 s at 5 Hz
-    (the time a thing that stops takes to fade into the background); less if the
-    thing stood there only a few frames. Measured in test_motion's rendered world:
-    without the suppression below, a 1.7 m human who stood 2 s under a camera 3 m
-    up left a ghost for 17 frames (3.4 s) after it started walking (its tall side
-    kept covering part of the spot at first); on a textured floor, a drawn box that
-    stood 2 s left one for 13 frames.
-    Most of a ghost is suppressed sooner: where a region's surroundings in the
-    frame are one uniform colour (a plain floor), its pixels that show that very
-    colour are dropped, since on a plain floor only an out-of-date model sees the
-    floor's colour as different from the floor. With it, that human's ghost
-    lasted 4 frames (0.8 s), while it was still joined to the human. On a textured
-    floor, or where the thing hid something else (a robot behind the human's
-    side), ghosts just fade.
-
-Limits
-    One instance per camera: the model belongs to one fixed view (a frame of
-    another size starts a new model). A camera on a moving mount sees everything
-    move. A robot moving is moving too: a robot asking for ``motion`` excludes its
-    own body from what it gets. Things that stop fade into the background within
-    the ghost time above; one that was background and starts moving is found only
-    in part (or joined to its ghost) until it has left its old place; a thing the
-    same colour as the floor is not seen.
+Each connected region of at least MIN_AREA pixels (default :data:`DEFAULT_MIN_AREA`) that
+differs from a model of the camera's background, learnt by OpenCV's MOG2 from the
+camera's own frame stream (``streaming``: the vision system calls :meth:`Motion.observe`
+with its frames). The stream contract, ghosts and limits: docs/design.md ("The built-in
+algorithms").
 
 >>> Motion().parse('250')
 MotionParams(min_area=250.0)

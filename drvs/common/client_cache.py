@@ -1,25 +1,9 @@
 """A bounded cache of open connections that closes what it evicts.
 
-The server keeps a persistent ROS service client per caller's callback
-service. Callers come and go; each client holds a socket and, in rospy, a
-thread, so a plain dict would grow file descriptors and threads without
-bound. :class:`ClosingCache` keeps at most ``maxsize`` values, drops those
-idle for longer than ``ttl`` seconds and the least recently used beyond
-``maxsize``, and *closes* every value it drops, so resources stay flat
-however many distinct callers there are.
-
-Hand-written on :class:`collections.OrderedDict` rather than
-``cachetools.TTLCache``: in cachetools 5.2, ``TTLCache.expire()`` removes
-expired items without reporting them, so they could not be closed. The
-dict is kept in least-recently-used order, and as every use also stamps
-the time, the idle entries are always at its front.
-
-Values are closed outside the lock: closing a client may block until its
-in-flight call finishes, and must not stall every other caller. A
-``close`` that raises is logged with its traceback; the cache goes on.
-Thread-safe: one lock, ``ClosingCache._lock``, guards the entries;
-``factory`` runs under it (so it is called once per key while cached) and
-must therefore be quick — build the client, do not connect.
+:class:`ClosingCache` keeps at most ``maxsize`` values, drops those idle for longer than
+``ttl`` seconds and the least recently used beyond ``maxsize``, and closes every value it
+drops, so file descriptors and threads stay flat however many callers come and go.
+Why it is hand-written and how it locks: docs/design.md ("Vision systems").
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """Counts by name since start and over the last period, for a node's health report.
 
-A node's ``/diagnostics`` status (:mod:`drvs.common.health`) judges what happened since the
-previous status — refusals, callbacks — and shows the totals beside it.
-:class:`PeriodCounts` keeps both: :meth:`PeriodCounts.add` counts, and
-:meth:`PeriodCounts.take_period` returns what was counted since it was last called
-and starts a new period, so whoever publishes the status once a period is the only
-one who calls it.
-
-No ROS here. Thread-safe: one lock, ``PeriodCounts._lock``, guards both tallies.
-Bounded: beyond ``max_keys`` distinct names, new names are counted under ``other``.
+:meth:`PeriodCounts.take_period` returns what was counted since it was last called and
+starts a new period (only the node's health report calls it). No ROS here; one lock,
+``PeriodCounts._lock``; beyond ``max_keys`` names, new ones count under ``other``.
+The node scaffold's use of it: docs/architecture.md.
 
 >>> counts = PeriodCounts()
 >>> counts.add('BUSY', 3); counts.add('INVALID')

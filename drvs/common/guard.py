@@ -1,27 +1,9 @@
-"""Background loops that never leave a node half alive.
+"""Background loops that never leave a node half alive: :class:`LoopGuard` and its policies.
 
-A node's background loops (registration renewal, lease expiry, workers) run
-on daemon threads. An exception that ends such a thread silently leaves a
-node that still answers on ROS but no longer does its job. :class:`LoopGuard`
-runs each loop under a policy:
-
-- ``RESTART``: log the traceback, wait ``restart_delay`` and run the loop
-  again; more than ``max_restarts`` failures within ``window`` seconds
-  escalate to fatal (a loop that fails at once, forever, is not healthy).
-- ``SHUTDOWN``: log the traceback and fail the node at once.
-
-A fatal failure sets :attr:`LoopGuard.failure` (the first reason only), sets
-the ``stop`` event so the other loops end, and calls ``on_fatal(reason)``
-once. The ROS glue passes ``on_fatal=lambda reason: rospy.signal_shutdown(reason)``
-and the node's ``main()`` returns 1 when ``guard.failure`` is set, so the
-process exits non-zero and a supervisor (roslaunch ``respawn``, systemd)
-sees the crash. A loop that raises after ``stop`` is set (the node is
-already stopping) is logged but not fatal.
-
-A ``BaseException`` that is not an ``Exception`` (``SystemExit`` from a stray
-``sys.exit()`` in a loop) is fatal under either policy, then re-raised.
-
-No ROS here; the clock is injectable so the restart window is testable.
+A loop runs under ``RESTART`` (logged, restarted, fatal when it keeps failing) or
+``SHUTDOWN`` (fatal at once); a fatal failure stops the other loops and calls
+``on_fatal``, so the node exits 1. No ROS here; the clock is injectable. The rules and
+why: docs/reliability.md ("No half-alive nodes").
 """
 
 from __future__ import annotations

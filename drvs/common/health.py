@@ -1,30 +1,16 @@
 """How healthy a DRVS node is, decided from plain facts: OK, WARN or ERROR, and why.
 
-Each node publishes one status a second on ``/diagnostics`` (the ROS convention
-read by ``rqt_robot_monitor`` and ``diagnostic_aggregator``; the glue is
-:mod:`drvs.ros.diagnostics`). This module decides the level and the one-line
-message from facts the node already counts, so the rules are unit-tested
-without ROS. The levels mean something:
-
-- ``ERROR``: the node cannot do its job now (a camera whose feed is stale, a
-  server refusing every forward, a robot that failed);
-- ``WARN``: it works, but something needs a look or will fail soon (nothing
-  registered yet, a queue nearly full, recent refusals, an old fix);
-- ``OK``: nothing to report; the message is ``'ok'``.
-
-When several rules fire, the level is the worst and the message lists every
-problem, errors first, joined by ``'; '``. ``values`` carries the facts
-themselves, units in the key names (``'frame age (s)'``), so a human can check
-the verdict. ``STALE`` is the aggregator's level for a status that stopped
-arriving; no rule here returns it.
+One function per node (:func:`server_health`, :func:`vision_system_health`,
+:func:`robot_health`) turns what the node counts into the level, the one-line message
+and the values of its ``/diagnostics`` status, unit-tested without ROS (the level
+constants repeat ``diagnostic_msgs/DiagnosticStatus``'s; a test checks they agree).
+What each level means for each node: the "Health" section of its page under docs/nodes/;
+how rules combine: docs/design.md.
 
 >>> server_health(2, 0, 100, {}, {}, 0, 0).message
 'ok'
 >>> robot_health('failed', 'no fix for 5.0 s', 6.0, 5.0, True).message
 'failed: no fix for 5.0 s'
-
-No ROS here: the level constants repeat ``diagnostic_msgs/DiagnosticStatus``'s,
-and a test checks that both agree.
 """
 
 from __future__ import annotations

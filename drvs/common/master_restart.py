@@ -1,27 +1,8 @@
 """When must a node register again with the ROS master? (ros/ros_comm#185)
 
-A ROS 1 master keeps every registration in memory only, and rospy registers a
-node's publications, subscriptions and services once, at creation. After the
-master is killed and started again, open connections keep working but the new
-master knows nothing: new lookups fail. :class:`MasterRestartDetector` decides,
-from what one poll of the master saw, whether the node must register again; the
-ROS glue (:mod:`drvs.ros.master_watch`) polls and re-registers. No ROS here.
-
-The rule: the node registers again when the master answers and
-
-1. its ``getPid`` differs from the master the node last registered with (a new
-   master process, even one restarted faster than a poll period), or
-2. ``lookupNode`` of the node's own name fails (the master does not know this
-   node: a restart before the first poll, a recycled pid, a master restarted on
-   another host with the same pid, or an earlier re-registration that failed
-   half way).
-
-A master that merely stopped answering for a while and comes back with the same
-pid and this node still known has lost nothing: the node does not register again
-(it only hears that the master is back). If the master lists this node's name
-under another node's URI, another process has taken the name; the node leaves it
-(registering again would make the master shut the other one down) and is told so
-once.
+:class:`MasterRestartDetector` decides, from what one poll of the master saw, whether the
+node must register again; the ROS glue (:mod:`drvs.ros.master_watch`) polls and
+re-registers. No ROS here. The rule and why: docs/reliability.md ("Master restarts").
 
 >>> detector = MasterRestartDetector('http://127.0.0.1:4000/', clock=lambda: 0.0)
 >>> detector.observe(101, 'http://127.0.0.1:4000/').verdict  # the master init_node registered with

@@ -1,11 +1,9 @@
 """Node settings declared next to their fields, and checked in one place.
 
-A node's settings are a frozen dataclass, one field per private ``~parameter``
-(:func:`drvs.ros.params.read_params` reads them from ROS). Each field is
-declared with :func:`param`: its default, a one-line meaning, a unit and a
-range. The README's parameter tables are generated from these declarations
-(:mod:`drvs.ros.param_docs`), and :func:`check` enforces the ranges with one
-wording per kind of error, naming the parameter as it is set:
+A node's settings are a frozen dataclass, one field per private ``~parameter``, each
+declared with :func:`param` (default, meaning, unit, range); :func:`check` enforces the
+ranges, every problem at once. The node pages' parameter tables are generated from these
+declarations (:mod:`drvs.ros.param_docs`); the rules: docs/design.md ("Parameters").
 
 >>> from dataclasses import dataclass
 >>> @dataclass(frozen=True)
@@ -22,12 +20,6 @@ drvs.common.settings.ParamError: ~lease: must be positive, got -1.0
 Traceback (most recent call last):
 drvs.common.settings.ParamError: ~lease: must be positive, got 0.0
 ~workers: must be at least 1, got 0
-
-Every problem is reported at once, one line each, in a :class:`ParamError` (a
-``ValueError``) that keeps each parameter's name apart from its problem, so a
-node can say where a wrong value came from. A field without a default is
-required (``param(REQUIRED, ...)``). A range is not checked on ``None``, the
-value of an optional field left unset.
 """
 
 from __future__ import annotations

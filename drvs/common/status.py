@@ -1,15 +1,8 @@
 """Why a DRVS call was or was not accepted: the status codes of every DRVS service response.
 
-The codes are the constants of ``DetectObjectBoundary`` and ``RegisterVisionService``
-(``rossrv show`` lists them); this module repeats them for code that imports no ROS,
-and a test checks that both agree. A client acts on the code, never on the text:
-
-- ``INVALID``: the request itself is wrong (the message names the field); sending it
-  again unchanged cannot succeed.
-- ``UNSUPPORTED``: no registered vision system runs the request's algorithm (the
-  message lists the algorithms that are available); final, like ``INVALID``.
-- ``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``: temporary; retry after ``retry_after``
-  seconds (with jitter, :func:`drvs.common.retry.retry_delay`). Never a reason to end a mission.
+The constants of the ``.srv`` files, repeated for code that imports no ROS (a test checks
+that both agree), with :class:`Refusal` and :func:`is_temporary`. What each code means and
+what a client does: docs/interface.md ("Status codes").
 
 >>> is_temporary(BUSY), is_temporary(INVALID)
 (True, False)

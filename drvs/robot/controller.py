@@ -1,23 +1,9 @@
 """The blind robot's navigation logic: plan, follow, predict between fixes, re-plan, stop (no rospy).
 
-Each control tick the robot node calls :meth:`Controller.step` with the newest
-fix of itself and of its station (from :mod:`drvs.robot.perception`) and publishes the
-velocity it returns. The controller
-
-- predicts where the robot is now from the last fix (a position at the time its
-  frames were captured) plus the velocities it commanded since
-  (:class:`DeadReckoning`), because DRVS answers arrive 0.1-0.3 s late;
-- plans with D* Lite on the cost grid and, when the map changes on or near the
-  remaining path (:meth:`Controller.on_map_changed`), repairs the plan
-  incrementally — a re-plan;
-- follows the plan with a look-ahead point (holonomic: x, y velocities in ``map``),
-  slowing down near the goal, and stops within ``goal_tolerance`` of the station;
-  it declares arrival only when a fix taken after stopping confirms it;
-- fails explicitly, stopping the robot and saying why: no fix for
-  ``fix_timeout`` seconds, no station found, the goal unreachable for
-  ``unreachable_timeout`` seconds (a walking human may open the way again), or a
-  reason given by the node (:meth:`Controller.fail`, e.g. no vision system
-  covers the robot).
+Each control tick the node calls :meth:`Controller.step` with the newest fixes and
+publishes the velocity it returns; the controller predicts the robot's position between
+late fixes (:class:`DeadReckoning`), plans and repairs with D* Lite, follows the plan and
+fails explicitly. What the robot does: docs/nodes/blind_robot.md; how: docs/design.md.
 """
 
 from __future__ import annotations

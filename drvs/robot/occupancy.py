@@ -1,32 +1,9 @@
 """The robot's occupancy grid: obstacle outlines in ``map`` -> cell costs for D* Lite.
 
-Three kinds of cell, with the costs the planner uses:
-
-- ``LETHAL`` (inf): the cell centre lies inside a detected outline.
-- ``INFLATED`` (1e6): the centre lies within ``robot_radius`` of an outline, so
-  the robot's body would touch the obstacle there. Inflated cells are very
-  expensive rather than impassable so that a robot that finds itself inside an
-  inflated margin (an obstacle appeared next to it, or it was pushed) still
-  gets a plan that leaves the margin by the cheapest way, and a station that
-  stands close to an obstacle can still be approached. One step into the
-  margin costs more than any path over free cells of a grid this size, so a
-  plan only crosses the margin when it must; :func:`crosses_margin` tells
-  whether it had to do so anywhere except at its two ends, which means the way
-  is in truth blocked.
-- ``FREE`` (1): everything else, unknown space included (the robot only knows
-  what the vision systems report).
-
-The robot radius is chosen by the caller; the blind robot uses half the
-diagonal of its footprint (the circle that contains the square body whatever
-its heading), see :mod:`drvs.ros.robot`.
-
-:class:`ObstacleMemory` keeps the latest outlines of each source (one role seen
-by one vision system) and forgets a source not heard from within ``ttl``
-seconds, so a moved obstacle leaves no ghost and one missed answer does not
-make an obstacle vanish.
-
-Grid layout follows nav_msgs/OccupancyGrid: origin at (0, 0) of ``map``, row
-``r`` spans y in [r * res, (r + 1) * res), column ``c`` spans x likewise.
+Cells are ``LETHAL``, ``INFLATED`` (within ``robot_radius``: very expensive, not
+impassable) or ``FREE``; :class:`ObstacleMemory` keeps each source's latest outlines and
+forgets a silent one after ``ttl``. The grid is laid out as nav_msgs/OccupancyGrid. Why
+the costs are what they are: docs/design.md ("The blind robot").
 """
 
 from __future__ import annotations

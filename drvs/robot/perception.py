@@ -1,59 +1,9 @@
 """What the blind robot knows from DRVS answers: request ids, superseded answers, merged objects.
 
-The robot asks DRVS with one colour model per role (``self``, ``station``,
-``obstacle``, ``human``, as in the paper's Algorithm 3, and ``robot`` — the
-other robots — when the world has that model) and gets zero or more callbacks
-per request, one from each vision system that found something, in any order,
-possibly late or twice. It asks either with one-shot requests (polling) or
-with watches (standing requests, drvs/WatchObjectBoundary). This module turns
-the callbacks into facts:
-
-- Request ids are ``<role>-<seq>`` for one-shot requests, ``seq`` counting up
-  per role, so a callback names its role and how recent its question was; a
-  watch's id is ``<prefix>/<role>`` (the node's name: ``/robot/self``), the same
-  for every call and every callback of it (:class:`RequestBook`).
-- Localisation (``self``, ``station``) with one-shot requests: the answers to
-  the newest request that has any answer form one *round*; the outlines of a
-  round are merged (the same object seen by two cameras is one object) and the
-  object's centroid is the fix. An answer to an older request than the current
-  round is superseded and ignored; a repeated answer replaces its first copy
-  instead of counting twice. When a role is asked with ``apriltag``, each object
-  is a tag's four corners in a fixed order: the fix is the tag's centre and it
-  has a *heading* (the tag's yaw, :func:`drvs.algorithms.apriltag.tag_pose`,
-  averaged over the cameras that saw it); other algorithms give no heading.
-  The station does not move: an outline of it much smaller than its fix's, where
-  the fix is, is the station partly hidden — the robot on it — and leaves the
-  fix as it is (:data:`HIDDEN`; with either way of asking).
-- Localisation with a watch: each vision system's newest answer (by its frames'
-  stamp; an older one is superseded) stands until the same vision system
-  replaces it — with ``changes_only`` it calls back only when the outlines
-  changed, so silence means "as before". An answer with no object says "this
-  vision system sees nothing of the role now". The fix merges the outlines of
-  every standing answer and is stamped with the newest of them; answers older
-  than the newest by more than the watch's duration are dropped (their vision
-  system left the watch: each renewal makes the ones that stay report in full).
-  :meth:`Perception.lost` says when every standing answer is empty.
-- Obstacles (``obstacle``, ``human``, ``robot``): each vision system's newest
-  answer per role replaces its earlier ones (a late answer to an older request,
-  or an older stamp of a watch, is ignored; an empty watch answer clears that
-  vision system's outlines); the robot keeps them in a
-  :class:`drvs.robot.occupancy.ObstacleMemory`. :func:`merge_outlines` unions
-  overlapping outlines of one role, and :func:`exclude_bodies` drops outlines
-  that are really the robot (itself, to the ``robot`` model too) or the station.
-
-Region-of-interest policy (:class:`RegionPolicy`; paper, section 4.3, with the
-robot tracking itself): obstacles are asked for in the box spanned by the robot
-and the station plus ``roi_margin``. The robot and its station are asked for
-over the whole floor (:func:`whole_floor`) until found; then the robot in a box
-around its predicted position grown by ``robot_radius + self_margin`` (shifted
-half the margin ahead while it moves), the station in its outline's box grown by
-``self_margin``. The robot widens its own region to the whole floor again when it
-loses itself: no fix newer than half ``fix_timeout``, or every watch answer says
-it sees nothing of it. Each region comes with the part of it that must stay
-covered (:class:`Region`; the robot's body or the station's box plus a quarter of
-the margin, the robot-station box plus half ``roi_margin``): a watch whose region
-still holds it need not move, so a moving robot re-sends its watches seldom
-(:mod:`drvs.robot.watch_schedule`).
+:class:`RequestBook` names requests, :class:`Perception` turns the callbacks of each role
+into fixes and obstacle outlines, and :class:`RegionPolicy` decides where each role is
+asked for. How answers are read and regions chosen: docs/design.md ("The blind robot");
+what the robot does with them: docs/nodes/blind_robot.md.
 """
 
 from __future__ import annotations

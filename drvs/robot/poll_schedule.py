@@ -1,35 +1,11 @@
 """When the blind robot asks DRVS for which role: rounds, periods, retries after refusals (no ROS).
 
-The robot's control loop never calls DRVS itself. Each tick it *posts* a round,
-the region of interest of every role it wants asked now
-(:meth:`RequestSchedule.post`); a requester thread takes one request at a time
-(:meth:`RequestSchedule.next_request`), sends it and reports how it went
-(:meth:`RequestSchedule.on_response`, :meth:`RequestSchedule.on_failure`).
-The rules:
-
-- Latest only: a round replaces the one before, and a role is sent at most once
-  per round, so a slow requester never builds a backlog and always asks with the
-  newest regions. Of the roles ready, the one sent least recently goes first, so
-  a server that acknowledges slowly delays every role alike and starves none.
-- Periods: a role in ``periods`` (the station) is asked every round until it is
-  *found* (the caller says so when it posts), then once per period.
-- Temporary refusals (``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``, and codes this
-  module does not know, with a warning once per code) and failed calls put the
-  role aside for :func:`drvs.common.retry.retry_delay` seconds: never earlier than the
-  server's ``retry_after``, doubling from ``base`` to ``cap`` while the role keeps
-  failing, plus jitter; an accepted request resets the count. None of these ends
-  the mission; the robot's own deadlines (no fix for ``fix_timeout``) do.
-- ``INVALID`` (the request itself is wrong) and ``UNSUPPORTED`` (no registered
-  vision system runs its algorithm) stop the schedule for good and keep the
-  server's message in :attr:`RequestSchedule.invalid`: asking again cannot help.
-- Rate: requests leave at least ``1 / max_rate`` seconds apart, whatever the
-  rounds and the retries, so the robot stays under the server's per-caller rate
-  limit (50 requests/s with bursts of 100 by default). With the robot's defaults
-  (5 rounds/s, 4 roles) the rounds alone allow at most 20/s.
-
-Not thread-safe: the robot node holds a lock (:mod:`drvs.ros.robot`). The clock
-(monotonic seconds) and the random source of the jitter are injected, so tests
-run a simulated minute in milliseconds.
+The control loop posts a round each tick (:meth:`RequestSchedule.post`); a requester
+thread takes one request at a time and reports how it went. Latest round only, the
+station once found only once per period, retries after jittered backoff, ``INVALID`` and
+``UNSUPPORTED`` final, calls spaced by ``max_rate``. The clock and the jitter are
+injected; not thread-safe (the node holds a lock). The rules: docs/nodes/blind_robot.md
+and docs/design.md ("The blind robot").
 
 >>> from drvs.common.status import BUSY
 >>> now = [0.0]

@@ -1,45 +1,10 @@
 """When the blind robot sends which watch (drvs/WatchObjectBoundary) for which role (no ROS).
 
-With watches the robot asks once per role and DRVS's vision systems call it back
-every period while the answer changes, instead of the robot asking again every
-control tick. The control loop posts, each tick, the region every role needs
-now (:meth:`WatchSchedule.post`, a :class:`drvs.robot.perception.Region` per role); a
-requester thread takes one call at a time (:meth:`WatchSchedule.next_request`),
-sends it and reports how it went (:meth:`WatchSchedule.on_response`,
-:meth:`WatchSchedule.on_failure`). One watch per role, with the period the robot
-chose for that role and one duration for all. A call is due:
-
-- ``new``: the role has no standing watch (never granted, or it expired).
-- ``region``: the posted region's ``needed`` part is no longer inside the standing
-  watch's region, or the posted box is less than a fraction of its area (``shrink``
-  per role, default :data:`SHRINK`: the robot found itself after searching the whole
-  floor; the robot asks a smaller fraction for the robot-station box, which shrinks
-  a little at a time as it drives: a larger region costs the cameras a little,
-  every move costs a robot message). Nothing
-  else moves a watch, so a moving robot re-sends a watch only when it nears its
-  edge (:data:`SHRINK`).
-- ``renew``: half the *granted* duration has passed since the watch was sent.
-  A renewal makes the vision systems report in full again, so it is also the
-  robot's keep-alive: with ``changes_only`` a robot standing still hears nothing
-  of itself, so a role in ``keep_alive`` is renewed as well when neither its
-  newest answer (posted as ``heard``) nor its last call is younger than that,
-  and a role posted as ``fresh`` (the robot stopped and wants a fix taken since)
-  is renewed at once, once.
-- ``cancel`` (duration 0): after :meth:`WatchSchedule.stop` (the mission is over),
-  once for every watch that may stand, best effort: a refused or failed cancel is
-  counted and not repeated (the watch expires on its own).
-
-Answers go as for one-shot requests (:class:`drvs.robot.poll_schedule.Retries`):
-temporary refusals and failed calls put the role aside for the server's
-``retry_after`` with jittered backoff, while a watch already granted stands
-until it expires; ``INVALID`` and ``UNSUPPORTED`` keep the server's message in
-:attr:`WatchSchedule.invalid` and end the calls (the robot fails). The calls of
-all roles leave at least ``1 / max_rate`` seconds apart; of the roles due, the
-one sent least recently goes first.
-
-Not thread-safe: the robot node holds a lock. The clock is ROS time in the node
-(the server's watch expiry is ROS time too) and injected here, as the random
-source of the jitter.
+One watch per role; a call is due when the role has none (``new``), when the region it
+needs leaves the standing one or shrank (``region``), at half the granted duration or as a
+keep-alive (``renew``), and once per watch when the mission is over (``cancel``). Answers
+go as for one-shot requests. The clock (ROS time in the node) and the jitter are
+injected; not thread-safe. The rules and why: docs/design.md ("The blind robot").
 
 >>> from drvs.robot.perception import Region
 >>> from drvs.common.status import ACCEPTED

@@ -1,12 +1,12 @@
-"""Generate README.md's parameter tables from the nodes' settings dataclasses.
+"""Generate the parameter tables of the node pages (docs/nodes/NODE.md) from the nodes' settings dataclasses.
 
-    .venv/bin/python -m drvs.ros.param_docs                    # print every node's table
-    .venv/bin/python -m drvs.ros.param_docs --write README.md  # rewrite them in place (make docs)
+    .venv/bin/python -m drvs.ros.param_docs                     # print every node's table
+    .venv/bin/python -m drvs.ros.param_docs --write docs/nodes  # rewrite them in place (make docs)
 
-Each node's table lies between ``<!-- params:NODE:begin -->`` and
-``<!-- params:NODE:end -->``; one row per field of its settings dataclass, as
+Each node's table lies in ``docs/nodes/NODE.md`` between ``<!-- params:NODE:begin -->``
+and ``<!-- params:NODE:end -->``; one row per field of its settings dataclass, as
 declared with :func:`drvs.common.settings.param`. ``test/project/test_param_docs.py`` fails
-when README.md and the code disagree, so the parameters are documented once.
+when a page and the code disagree, so the parameters are documented once.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ NODES = {
     'sim_camera': SimCameraParams,
     'scenario_recorder': RecorderSettings,
 }
-"""Node name (as in the README markers) -> its settings dataclass."""
+"""Node name (its page: docs/nodes/NODE.md, the table between its markers) -> its settings dataclass."""
 
 HEADER = '| parameter | type | default | meaning |\n|---|---|---|---|'
 
@@ -94,42 +94,53 @@ def block(text: str, node: str) -> str | None:
     return text[start + len(begin) : stop].strip()
 
 
-def rewritten(text: str) -> str:
-    """``text`` with every node's table regenerated between its markers.
+def rewritten(text: str, node: str) -> str:
+    """``text`` with ``node``'s table regenerated between its markers.
 
-    :raises ValueError: naming a node whose markers are missing.
+    :raises ValueError: naming the node when its markers are missing.
     """
-    for node, cls in NODES.items():
-        if block(text, node) is None:
-            begin, end = markers(node)
-            raise ValueError(f'{node}: no {begin} ... {end} in the file')
-        begin, end = markers(node)
-        head, rest = text.split(begin, 1)
-        tail = rest.split(end, 1)[1]
-        text = f'{head}{begin}\n{table(cls)}\n{end}{tail}'
-    return text
+    begin, end = markers(node)
+    if block(text, node) is None:
+        raise ValueError(f'{node}: no {begin} ... {end} in the file')
+    head, rest = text.split(begin, 1)
+    tail = rest.split(end, 1)[1]
+    return f'{head}{begin}\n{table(NODES[node])}\n{end}{tail}'
+
+
+def page(folder: Path, node: str) -> Path:
+    """The page of ``node`` in ``folder`` (docs/nodes)."""
+    return folder / f'{node}.md'
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--write', type=Path, metavar='FILE', help='rewrite the tables in FILE (README.md)')
+    parser.add_argument(
+        '--write',
+        type=Path,
+        metavar='FOLDER',
+        help='rewrite the tables of the pages FOLDER/NODE.md (docs/nodes)',
+    )
     options = parser.parse_args(argv)
     if options.write is None:
         for node, cls in NODES.items():
             print(f'{node}:\n\n{table(cls)}\n')
         return 0
-    text = options.write.read_text()
-    try:
-        new = rewritten(text)
-    except ValueError as error:
-        print(f'{options.write}: {error}', file=sys.stderr)
-        return 1
-    if new == text:
-        print(f'{options.write}: parameter tables up to date')
-    else:
-        options.write.write_text(new)
-        print(f'{options.write}: parameter tables rewritten')
-    return 0
+    status = 0
+    for node in NODES:
+        path = page(options.write, node)
+        try:
+            text = path.read_text()
+            new = rewritten(text, node)
+        except (OSError, ValueError) as error:
+            print(f'{path}: {getattr(error, "strerror", None) or error}', file=sys.stderr)
+            status = 1
+            continue
+        if new == text:
+            print(f'{path}: parameter table up to date')
+        else:
+            path.write_text(new)
+            print(f'{path}: parameter table rewritten')
+    return status
 
 
 if __name__ == '__main__':

@@ -1,31 +1,9 @@
 """A bounded worker pool that sends items to many destinations, one at a time per destination.
 
-The DRVS server forwards each robot request to several vision systems. Each
-vision system has one persistent connection that carries one call at a time,
-so items queue per destination (FIFO) and at most one is in flight per
-destination: a hung destination holds one worker, never more, and the others
-keep flowing. Bounds: ``max_pending`` items in all (queued + in flight) and
-``max_per_destination`` per destination; :meth:`Dispatcher.submit` refuses
-instead of queueing without bound.
-
-Sending without a worker: with ``begin``, an item whose send can start without
-blocking (a call on a connection already open, whose reply another thread will
-wait for: :meth:`drvs.ros.service_client.ServiceClient.start`) is started by the
-thread at hand — the one that queued it (:meth:`Dispatcher.release`) or the one
-that saw the previous item of its destination end — and ends when ``begin``'s
-``done`` is called. Only what cannot start so (a first connection, a
-reconnection) goes to a worker, which may block. A hand-off to a worker costs a
-thread wake-up and a fight for the interpreter lock per item, more than a
-forward itself.
-
-A service handler that queues items and then answers holds them back until its
-answer is out (``submit(..., wake=False)``, then :meth:`Dispatcher.release` on
-the same thread): a send started at once would compete with the answer, and the
-caller would wait for the forward to start before it hears "accepted".
-
-No ROS here; ``send`` and ``begin`` are any callables. They should handle their
-own errors; an exception that escapes one is logged with its traceback, the
-item counts as sent and the pool goes on.
+The DRVS server forwards through it: items queue per destination, at most one in flight
+each, ``max_pending`` in all; :meth:`Dispatcher.submit` refuses rather than queue without
+bound, and an item that can start without blocking is sent by the thread at hand. No ROS
+here; ``send`` and ``begin`` are any callables. How and why: docs/design.md ("Forwarding").
 """
 
 from __future__ import annotations

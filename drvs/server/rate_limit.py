@@ -1,19 +1,9 @@
 """Per-caller rate limiting of ROS requests: a token bucket per caller id.
 
-Each key (the caller id of a ROS request) has a bucket of at most ``burst``
-tokens that refills at ``rate`` tokens per second; a request takes one token
-or is refused with the seconds until one will be there, which the server
-returns as its ``retry_after`` hint (see :func:`drvs.common.retry.retry_delay`).
-
-Memory stays bounded however many callers come and go: a bucket not served
-for ``ttl = burst / rate`` seconds would be full again anyway, so it is
-forgotten; beyond ``max_keys`` the least recently used key is forgotten, which
-at worst hands that caller a fresh full bucket. The buckets live in one
-``OrderedDict`` in order of use, so both kinds of forgetting take from its
-front. (Not ``cachetools.TTLCache``: the DRVS server calls :meth:`RateLimiter.take`
-for every request, and a TTLCache read and write cost it several microseconds.)
-
-No ROS here. Thread-safe: one lock, ``RateLimiter._lock``, guards the buckets.
+A request takes a token or is refused with the seconds until one will be there (the
+server's ``retry_after``); idle buckets and those beyond ``max_keys`` are forgotten, so
+memory stays bounded. No ROS here; one lock, ``RateLimiter._lock``. Why it is built this
+way: docs/design.md ("Rate limit").
 """
 
 from __future__ import annotations

@@ -1,42 +1,9 @@
 """The registry of vision systems: who sees which part of the floor, runs what, through which connection.
 
-Each vision system registers its DetectObjectBoundary service name, its field
-of view (a polygon on the floor, frame ``map``) and the names of the algorithms
-it runs (an empty list means the built-ins, :data:`drvs.algorithms.BUILTIN_NAMES`).
-A registration is a lease: it lasts ``lease`` seconds unless renewed by
-registering the same again. A moved camera registers its new field of view, a
-camera with new plugins its new list, and routing follows at once; an empty
-field of view unregisters.
-
-Failures and ejection (like Envoy's outlier detection): a vision system whose
-forwards fail ``max_failures`` times in a row is removed, even while it keeps
-renewing: the count resets only on a new registration, a move (or a new
-algorithm list) or a successful forward, never on a renewal. A removed one is
-then *ejected*: its registrations are refused (:class:`drvs.common.status.Refusal`,
-``UNAVAILABLE`` with ``retry_after``) for ``ejection_time`` times the number of
-times it was ejected, at most ``max_ejection_time``, so a wedged camera cannot
-flap back in at every renewal and swallow robots' requests. A successful
-forward forgets its past ejections. The ejection holds for the *instance* that
-failed (the server passes the service's ``rosrpc://`` URI): a restarted vision
-system, serving from a new address, may register again at once, so a crash and
-restart costs no waiting.
-
-One entry holds everything the server keeps for a vision system: field of
-view, algorithms, lease, the node that registered it (``provider``) and the
-connection the server forwards through (``client``, made by the caller's
-factory). All of it changes under one lock, ``Registry._lock``, so a removal is
-atomic: whoever removes an entry gets it back (to close its client) and nobody
-else can see it half gone.
-
-:meth:`Registry.match` is the paper's Algorithm 1: the vision systems whose
-field of view meets the region of interest, through a spatial index
-(:mod:`drvs.server.spatial_index`; touching edges do not count), narrowed to those that
-run the request's algorithm. The index answers the entries themselves (the
-registry keeps each one's current entry there, under its lock), so a match
-looks nothing up again. :meth:`Registry.available_algorithms` tells a
-request for an algorithm nobody runs from one that nobody covering its region
-runs. No ROS here: the server
-(:mod:`drvs.ros.server`) checks who may register what and does the forwarding.
+Registrations are leases; failed forwards remove and eject a vision system;
+:meth:`Registry.match` is the paper's Algorithm 1 through the spatial index. No ROS here:
+the server (:mod:`drvs.ros.server`) checks who may register what and forwards. How and
+why: docs/design.md ("The server"); what a vision system sees of it: docs/nodes/drvs_server.md.
 
 >>> registry = Registry()
 >>> registry.register('/vs1', [(0, 0), (2, 0), (2, 2)], algorithms=['colour', 'sift'])

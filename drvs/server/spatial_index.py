@@ -1,53 +1,9 @@
 """A spatial index of field-of-view polygons that stays fast while cameras come, go and move.
 
-Why this design: cameras register, move and expire all the time, and a match
-must take tens of microseconds among a million of them. A static tree
-(shapely's STRtree) answers fast but cannot take a change, and rebuilding it
-over a million polygons takes seconds while the changes pile up. So the index
-is a **hierarchical uniform grid**, which never needs rebuilding:
-
-- a polygon goes into one cell: at the *level* whose square cells (a power of
-  two in metres) are at least as wide as its bounding box, the cell holding the
-  box's lower-left corner. Big and small fields of view each get cells of
-  their size; only the levels in use are visited;
-- a query visits, at each level, the cells from the region's upper-right
-  corner down to one bounding-box extent (the widest at that level) left of and
-  below its lower-left corner, or the level's occupied cells if they are fewer;
-- insertion, removal and a move (remove + insert) are O(1) and nothing runs
-  in the background: a match costs the same while cameras move.
-
-A cell keeps its polygons' bounding boxes side by side in one array: scanning
-them costs a cache miss per cell, not several per polygon (float objects strewn
-over the heap), which is most of a match among a million polygons.
-
-A polygon whose bounding box overlaps the region's by a positive length is then
-tested exactly, in plain Python where it can be (a GEOS call through shapely 1.8
-costs more than the whole test):
-
-- one of its vertices lies strictly inside the region: it matches (its
-  interior comes arbitrarily close to its vertices);
-- it is convex: the **separating-axis test**. Two convex polygons' interiors
-  meet exactly when, along every outward edge normal of each, one reaches
-  beyond the other's nearest point. The region's normals are x and y (the
-  strict bounding-box test above); along each of the polygon's, it must reach
-  past the region's nearest corner. Rounding makes each such margin wrong by a
-  few units in the last place of the largest coordinate; a margin within
-  :data:`TOLERANCE` times that coordinate is not trusted;
-- anything else (a non-convex polygon, a region of zero width or height, a
-  margin too close to call, a shape thinner than the tolerance or with a
-  coordinate nearer zero than :data:`TINY`) goes to :func:`interiors_intersect`,
-  GEOS's relate.
-
-So the answers are those of :func:`interiors_intersect`, the matching rule: a
-field of view matches a region when their *interiors* share a point (DE-9IM
-``T********``): overlapping by any positive area matches; touching along an
-edge or at a corner only does not (the camera would see nothing of the region
-but a line). A region of zero width (a segment or a point) matches the fields
-of view whose interior it enters. ``test/unit/server/test_spatial_index.py`` checks both paths
-against GEOS and against brute force.
-
-The index is thread-safe (one internal lock). ``bench/registry.py`` measures it
-(``make bench``).
+A hierarchical uniform grid (no rebuilds: insert, remove and move in O(1)), with an exact
+test in plain Python where it is certain and GEOS's relate (:func:`interiors_intersect`,
+the matching rule) where it is not. Thread-safe (one internal lock). The design, the
+matching rule and why: docs/design.md ("Matching"); ``bench/registry.py`` measures it.
 """
 
 from __future__ import annotations

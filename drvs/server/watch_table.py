@@ -1,46 +1,10 @@
 """The server's standing requests ("watches"): which vision systems serve each, and what to send them.
 
-A robot's watch (drvs/WatchObjectBoundary) asks for the objects that an
-algorithm finds in a region of interest, every ``period`` seconds, called back
-on ``callback_service``. The server keys it by (caller id, ``request_id``):
-the same key again with ``duration`` > 0 renews it (the region, algorithm,
-period, ``changes_only`` and callback may change), ``duration`` 0 cancels it (an
-unknown one too: a cancel always succeeds). The grant bounds both: the period
-is at least ``min_period``, the duration at most ``max_duration``; a watch not
-renewed within its granted duration expires. At most ``max_watches`` stand at
-once; a new one beyond is refused ``BUSY``.
-
-Who serves a watch is the paper's Algorithm 1 (:meth:`drvs.server.registry.Registry.match`):
-the registered vision systems whose field of view meets the region and that run
-the algorithm's NAME. It is worked out when the watch is asked for and again
-whenever the registry's entries change (:attr:`Registry.version`: a registration,
-a move, new algorithms, a removal; not a renewal). What to send follows from the
-difference, as :class:`Forward` items, in order:
-
-- ``NEW``: to a vision system that now serves the watch (also one that registers
-  or moves in later): the watch, with the time it has left.
-- ``RENEWAL``: the caller renewed: to each one that keeps serving it.
-- ``WITHDRAWAL`` (duration 0): to one that stops serving it (it moved away, no
-  longer runs the algorithm, left the registry, or the renewed region no longer
-  meets its field of view), and to all on cancel or expiry.
-- ``ONE_SHOT``: a vision system without a watch service (only the paper's
-  interface, :attr:`drvs.server.registry.Registration.watch_service` false) gets a
-  DetectObjectBoundary request with the watch's ``request_id`` and callback every
-  period instead, the first at once; there is nothing to withdraw from it.
-
-Vision systems key a watch by (``callback_service``, ``request_id``), so two
-callers' watches may not share that pair: the second is refused, naming
-``request_id``. A renewal with a new callback is withdrawn under the old pair
-and forwarded anew under the new one. A vision system that registers anew
-(:meth:`WatchTable.forget`: it restarted and lost its watches) gets every watch
-it serves forwarded again at the next :meth:`WatchTable.sync`; one whose forward
-did not get through (:meth:`WatchTable.undelivered`: no room in the server's
-queues, or the call failed) gets it again ``retry_delay`` seconds later, so a
-broken watch service is not hammered.
-
-No ROS here; the clock is injected (the server passes ROS time, so watches follow
-``/clock`` in simulation). Not thread-safe: the server calls it under one lock,
-which also keeps the forwards to each vision system in the order they were made.
+Watches keyed by (caller id, ``request_id``), granted and expired; who serves each is
+worked out again whenever the registry changes, and the difference becomes
+:class:`Forward` items (new, renewal, withdrawal, one-shot). No ROS here; the clock is
+injected; not thread-safe (the server holds one lock). The rules: docs/nodes/drvs_server.md;
+how and why: docs/design.md ("Watches: the server's side").
 
 >>> from drvs.testing import ManualClock
 >>> registry = Registry()

@@ -1,24 +1,9 @@
 """Rendering through a lens: the simulation's frames as a camera with radial/tangential distortion takes them.
 
-PyBullet renders ideal pinhole images. :class:`Lens` gets a distorted image of
-``camera.width`` x ``camera.height`` from one ideal render of a larger *canvas*: the
-same eye, target, up and focal length, the image grown on every side so that it
-contains every position the lens bends the output's pixels back to. For each output
-pixel the lens's maps hold where in the canvas its ray falls (undistorted with
-:meth:`drvs.vision.optics.CameraModel.undistort`, then shifted by the padding); ``cv2.remap``
-samples the colour there bilinearly and the depth at the nearest canvas pixel.
-
-The output images are described by :attr:`Lens.model`: ``K`` is the unpadded camera's
-(:func:`drvs.vision.optics.intrinsics_of` with the renderer's sample offset), ``D`` the lens's.
-That is what a simulated camera publishes as its CameraInfo; with ``D`` = () the lens is
-the identity and nothing is padded or remapped.
-
-The padding is a whole number of pixels on each side (x and y apart), so the canvas's
-principal point is exactly the camera's moved by it, whatever the parity of the size,
-and the renderer's sample offset is the same in both.
-
-Colours at the edges of bodies are blended by the bilinear interpolation, as a real
-camera's are: a region found by a colour model may gain or lose a pixel there.
+:class:`Lens` remaps one ideal PyBullet render of a larger canvas into the distorted image
+of ``camera.width`` x ``camera.height``; :attr:`Lens.model` describes the output (the
+camera's ``K``, the lens's ``D``), as the simulated camera publishes it in its CameraInfo.
+How: docs/design.md ("Vision systems"); who uses it: docs/nodes/sim_camera.md.
 """
 
 from __future__ import annotations

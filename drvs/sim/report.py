@@ -1,26 +1,10 @@
 """A scenario run's picture, summary and figures, from what was recorded while it ran.
 
-:class:`RunRecord` holds the recording: one :class:`RobotRecord` per robot of the
-world (plans, driven trajectory, re-plans, its traffic counters) and what the run
-shares (fields of view, the robots' maps, the server's and each camera's
-counters, CPU use, wall-clock time). :func:`summary` turns it into the
-``summary.json`` dictionary, :func:`figures_table` that into the table
-``run_scenario.sh`` prints at the end, and :func:`picture` into the picture (a
-matplotlib Figure, which :func:`draw` writes as a PNG) in the style of the paper's
-Figures 7, 8, 10 and 11, every robot in its own colour; :func:`write_report` writes
-the summary, ``trace.json`` and the picture (the live recorder and ``drvs_report``
-share it).
-
-The summary has a row per robot in ``robots`` and the run's totals at the top
-(``reached`` when every robot did, ``elapsed`` until the last arrival, ``replans``
-and ``collisions`` summed). With a single robot (the paper's worlds) the rest of
-its row is at the top level too, as before fleets: ``state``, ``reason``,
-``driven_length``, ``best_length``; ``trace.json`` likewise.
-
-:func:`hindsight_shortest_length` is the shortest collision-free route among the
-world's static obstacles, an A* search on a visibility graph (exact for polygonal
-obstacles, unlike a grid): about 0.1 s for a route across a 20 × 12 m floor of 28
-shelves.
+:class:`RunRecord` holds the recording (a :class:`RobotRecord` per robot and what the run
+shares); :func:`summary`, :func:`figures_table` and :func:`picture` turn it into
+``summary.json``, the table ``run_scenario.sh`` prints and ``run.png``, and
+:func:`write_report` writes them (the live recorder and ``drvs_report`` share it). What
+they hold: docs/running-scenarios.md ("What a run leaves") and docs/nodes/scenario_recorder.md.
 """
 
 from __future__ import annotations

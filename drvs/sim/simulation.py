@@ -1,19 +1,8 @@
 """world_sim's core: humans walking their waypoint loops, the robots driven by velocity commands.
 
-Each robot moves kinematically: its velocity command (x, y in ``map``) is capped at
-its speed, and a step that would push it into an obstacle (any object, static or
-human, or another robot) or over the floor's edge is shortened to the last free
-position, so it stops at obstacles instead of passing through them. Each new touch
-of an obstacle counts one contact. A human walking into a robot does not stop
-(humans follow their loop regardless); it counts as a contact too, and the robot may
-then move in any direction that does not push it deeper. Two robots that touch count
-a contact each, whichever drove into the other. Stations are not obstacles: a robot
-drives onto its own, and may cross another's. Robots move one after the other in the
-world's order, each against the others' poses of this step.
-
-Contacts are PyBullet's closest-point queries between the boxes of a :class:`Scene`,
-asked only about the bodies whose bounding circles a robot could reach, so a step
-stays cheap in a world with many bodies.
+Robots move kinematically and stop at obstacles, other robots and the floor's edge,
+counting contacts (PyBullet closest-point queries between a :class:`Scene`'s boxes); the
+step clock paces the world. The rules: docs/nodes/world_sim.md ("Motion", "Time").
 """
 
 from __future__ import annotations

@@ -1,26 +1,13 @@
 """One JSON line per reliability test, for the report that ``scripts/reliability_report.py`` writes.
 
-The fault, load, hostile-input and master-restart suites each leave one line per
-test in the file named by the environment variable ``DRVS_RELIABILITY_LOG``;
-without it, :func:`record` writes nothing, so ``make test`` is unaffected.
-
-A line holds ``suite`` (one of :data:`SUITES`), ``test`` (the pytest id),
-``what`` (the fault or load, in words), ``outcome`` (one of :data:`OUTCOMES`)
-and numbers named by what they count: ``requests``, ``callbacks_expected``,
-``callbacks_received``, ``lost``, ``duplicated``, ``rss_before`` / ``rss_after``
-(kB), ``fds_before`` / ``fds_after``, ``threads_before`` / ``threads_after``,
-``recovery_seconds``, ``inputs`` (inputs tried, for the hostile suite), ...
-The report sums ``lost`` and ``inputs`` over all lines.
-
-:class:`Trial` writes the line when its block ends, ``failed`` (with the error)
-if the block raised, so a failing test is reported too::
+:func:`record` and :class:`Trial` (which writes ``failed`` with the error if its block
+raised) append a line to the file named by ``DRVS_RELIABILITY_LOG``, if set;
+:func:`sample_resources` reads a process's memory, threads and open files from ``/proc``.
+What a line holds: docs/reliability.md ("The suites' figures")::
 
     with Trial('fault', request.node.name, 'kill -9 a vision system') as trial:
         ...
         trial['recovery_seconds'] = 1.7
-
-:func:`sample_resources` reads a process's memory, threads and open files from
-``/proc``, the numbers the load and fault tests compare before and after.
 """
 
 from __future__ import annotations

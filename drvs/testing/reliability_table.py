@@ -1,12 +1,9 @@
-"""The Reliability table: the reliability suites' JSON lines turned into Markdown.
+"""The reliability suites' JSON lines turned into Markdown, for docs/reliability.md.
 
-Every fault, load, hostile-input and master-restart test leaves one line
-(:mod:`drvs.testing.reliability_log`). :func:`summarise` counts them —
-faults survived, load held, inputs tried, data lost — :func:`summary_table`
-renders those four rows, :func:`report` adds one table per suite with each
-test's numbers, and :func:`replace_block` puts the summary between the
-``<!-- reliability:begin -->`` and ``<!-- reliability:end -->`` markers of the
-README. ``scripts/reliability_report.py`` runs the suites and writes the files.
+:func:`summarise` counts the lines (:mod:`drvs.testing.reliability_log`), :func:`summary_table`
+renders the summary, :func:`report` adds a table per suite, and :func:`replace_block` puts
+text between the ``<!-- reliability:begin -->`` and ``<!-- reliability:end -->`` markers;
+``scripts/reliability_report.py`` runs the suites and writes the page.
 
 >>> lines = [
 ...     {'suite': 'fault', 'test': 't1', 'what': 'kill -9', 'outcome': 'survived', 'recovery_seconds': 0.5},

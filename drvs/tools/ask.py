@@ -1,28 +1,9 @@
 """``drvs_ask``: ask DRVS one question from a terminal and print the answers.
 
-It serves a temporary drvs/CallbackCoordinates service, sends one
-DetectObjectBoundary request to the server with that service as the callback,
-prints the server's acknowledgement and then every vision system's callback
-(outlines in ``map``) until ``--wait`` seconds have passed.
-
-A temporary refusal (``BUSY``, ``RATE_LIMITED``, ``UNAVAILABLE``) or an unreachable
-server is retried after the server's ``retry_after`` (with jitter,
-:func:`drvs.common.retry.retry_delay`) until ``--timeout`` seconds have passed; ``INVALID``
-and ``UNSUPPORTED`` are final. Without a ROS master it gives up after
-``--master-timeout`` seconds. Only vision systems that found something call back,
-so "nothing found" and "no camera there" differ in the acknowledgement's
-``vision_systems``. Exit codes (:data:`EXIT_CODES`, also in ``--help``):
-
-====  ===========================================================================
-0     objects found: at least one vision system called back with outlines
-1     vision systems were asked, but none found anything within ``--wait``
-2     bad options (argparse; one line naming the option)
-3     no vision system covers the region (none was asked)
-4     the request was refused (the status name and the server's message are printed)
-5     no DRVS server answered within ``--timeout``
-6     no ROS master answered within ``--master-timeout``
-130   interrupted (Ctrl-C)
-====  ===========================================================================
+It serves a temporary drvs/CallbackCoordinates service, sends one DetectObjectBoundary
+request with it as the callback, prints the acknowledgement and every callback until
+``--wait`` seconds have passed, retrying temporary refusals until ``--timeout``. Its
+options and exit codes (:data:`EXIT_CODES`): docs/tutorials/by-hand.md.
 """
 
 from __future__ import annotations

@@ -1,20 +1,9 @@
 """``drvs_calibrate``: a camera's pose in ``map`` from one image and floor points, for tf and world files.
 
-The image comes from a file (``--image``) or as one sensor_msgs/Image from a
-running graph (``--topic``). The intrinsics, first match wins:
-
-1. ``--fx --fy --cx --cy`` (all four; ``--distortion k1,k2,p1,p2,k3`` optional);
-2. ``--camera-info``: a camera_calibration_parsers YAML file when it names an existing
-   file or ends in ``.yaml``/``.yml``, otherwise a sensor_msgs/CameraInfo topic
-   (read with ``image_geometry.PinholeCameraModel``);
-3. with ``--topic``: the sibling ``camera_info`` topic (``/cam1/image_raw`` ->
-   ``/cam1/camera_info``).
-
-The tf frame is ``--frame``, else the image's ``frame_id``, else the camera info's,
-else ``camera_optical_frame``. The floor points and the solving are
-:mod:`drvs.vision.calibration`'s. Everything taken from the graph shares one ``--timeout``;
-without a master it fails at once. Exit codes: 0 with a pose, 2 on bad input (one
-line on stderr naming the problem), 130 when interrupted.
+The image from a file (``--image``) or one sensor_msgs/Image of a running graph
+(``--topic``); the intrinsics and the tf frame as the options say; the floor points and the
+solving are :mod:`drvs.vision.calibration`'s. Its options, the order in which intrinsics
+and the frame are taken, and its exit codes: docs/tutorials/your-camera.md.
 """
 
 from __future__ import annotations
@@ -45,7 +34,10 @@ from drvs.vision.calibration import (
     tag_points,
 )
 
-DEFAULT_FRAME = 'camera_optical_frame'
+
+def default_frame(name: str) -> str:
+    """The optical frame of camera ``--name NAME`` when neither the image nor the camera info names one."""
+    return f'{name}_optical_frame'
 
 
 class _Parser(argparse.ArgumentParser):
@@ -139,7 +131,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument(
         '--frame',
         help="the camera's optical frame for tf (default: the frame_id of the image, else of the camera "
-        f'info, else {DEFAULT_FRAME})',
+        'info, else NAME_optical_frame)',
     )
     parser.add_argument('--json', metavar='FILE', help='also write everything printed to FILE as JSON')
     parser.add_argument(
@@ -307,7 +299,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.tag:
         points = tag_points(args.tag, detect_tags(image, intrinsics)) + points
     calibration = solve(points, intrinsics, width, height)
-    frame = args.frame or frame_id or intrinsics.frame_id or DEFAULT_FRAME
+    frame = args.frame or frame_id or intrinsics.frame_id or default_frame(args.name)
     print(calibration.report(args.name, frame))
     for note in calibration.notes:
         print(f'drvs_calibrate: note: {note}', file=sys.stderr)

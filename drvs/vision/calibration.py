@@ -1,24 +1,9 @@
 """A camera's pose in ``map`` from one image and four or more floor points at known positions.
 
-The points are AprilTags (family tag36h11) lying flat on the floor, found with
-OpenCV's aruco module, or pixel/map pairs picked by hand. Each floor point is
-(x, y, 0) in ``map``; ``cv2.solvePnP`` gives camera <- map, inverted here to the
-pose of the camera's optical frame in ``map`` (REP-103 optical frame: x right,
-y down, z forward). :class:`Calibration` prints it as ``static_transform_publisher``
-arguments and as a world file's ``vision_systems`` entry.
-
-Conventions. Pixels are OpenCV's: the centre of the top-left pixel is (0, 0), so
-a W x H image spans -0.5 .. W - 0.5 (:data:`drvs.vision.optics.OPENCV_OFFSET` converts
-from DRVS corner coordinates). A tag's floor point is its centre; its pixel is
-where the diagonals of its four detected corners cross, in undistorted
-coordinates (a homography keeps lines and their intersections, so this is exact
-for any view), then distorted again. The corners are refined by fitting a line to
-each outer edge of the black square, which averages out the pixel staircase.
-
-Example (a camera above a floor with six tags)::
-
-    drvs_calibrate --image cam1.png --fx 519.6 --fy 519.6 --cx 399.5 --cy 299.5 \\
-        --tag 0:1.0,1.0 --tag 1:2.5,1.2 --tag 2:1.2,2.6 --tag 3:2.8,2.8 --name cam1
+The points are AprilTags (tag36h11) lying flat on the floor, found with OpenCV's aruco
+module, or pixel/map pairs picked by hand (OpenCV pixel coordinates); ``cv2.solvePnP``
+gives the pose, which :class:`Calibration` prints for tf and a world file. How to use it:
+docs/tutorials/your-camera.md; how tags are located: docs/design.md ("Vision systems").
 """
 
 from __future__ import annotations
@@ -359,7 +344,9 @@ def tag_points(tags: list[TagSpec], seen: dict[int, list[TagSighting]]) -> list[
             ids = ', '.join(map(str, sorted(seen))) if seen else f'none: no {TAG_FAMILY} tag in the image'
             raise CalibrationError(
                 f'tag {tag.id} is not seen in the image (tags seen: {ids}); '
-                'check the --tag ids, and that each tag is whole, flat and in focus'
+                'check the --tag ids, and that each tag is whole, flat and in focus, with a white border '
+                '(quiet zone) around its black square at least two of its cells wide (200 px around an '
+                '800 px tag)'
             )
         if len(sightings) > 1:
             raise CalibrationError(

@@ -1,16 +1,9 @@
 """The newest frame of a camera feed: which frame a request may use, and whether the feed is alive.
 
-A vision system fed by a camera topic keeps only the newest frame (a slow worker
-always gets the newest, never a backlog). A request uses it if it is younger than
-``max_age`` (by its stamp: the moment it shows); otherwise the request waits for
-the next frame to arrive, at most ``timeout`` seconds. The feed is *stale* when no
-frame has arrived for ``stale_after`` seconds: the vision system then unregisters,
-so robots are never routed to a dead camera.
-
-Arrival is measured on ``clock`` (injected; the node passes ``rospy.get_time``),
-so the bookkeeping is tested without a camera or a roscore. Waiting uses real
-time. A frame is anything with a ``stamp`` in seconds; what the node stores (the
-raw messages, decoded on demand) is its business.
+Only the newest frame is kept; a request uses it if younger than ``max_age``, else waits
+up to ``timeout`` for the next; the feed is stale after ``stale_after`` seconds without
+one. Arrival is measured on an injected clock. What a vision system does with it:
+docs/nodes/vision_system.md.
 
 >>> from types import SimpleNamespace
 >>> from drvs.testing.clock import ManualClock

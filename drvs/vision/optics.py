@@ -1,25 +1,9 @@
 """A calibrated camera as ROS describes it: CameraInfo intrinsics and distortion, and its pose on tf.
 
-Where :mod:`drvs.vision.camera` is the simulation's ideal camera (PyBullet's eye/target/fov),
-this is the model of any camera whose frames arrive on a topic: intrinsics ``K`` and
-distortion ``D`` from its ``sensor_msgs/CameraInfo`` (plumb_bob: k1, k2, p1, p2, k3;
-rational_polynomial: 8 coefficients; empty: none), and the pose of its optical frame
-in ``map`` from tf (REP-103/105 optical frame: z forward, x right, y down).
-
-Pixel conventions. DRVS works in continuous *corner* coordinates: array pixel (row r,
-column c) covers [c, c+1] x [r, r+1], its centre is (c + 0.5, r + 0.5); the outlines
-of :mod:`drvs.algorithms` are in these. OpenCV and ROS (``K``, ``cv2.undistortPoints``,
-``image_geometry``) put the centre of pixel (r, c) at (c, r). So an OpenCV coordinate
-is a DRVS coordinate minus 0.5; every method here takes and returns DRVS coordinates.
-
-Undistortion. ``cv2.undistortPoints`` runs a fixed 5 iterations of a fixed-point scheme:
-with a moderate barrel lens (k1 = -0.25, k2 = 0.08) at a 90 degree field of view it
-leaves the image corners over a hundred pixels off, and more iterations do not help
-(the scheme oscillates there). :meth:`CameraModel.undistort` therefore iterates with
-``cv2.undistortPointsIter``, checks each result by distorting it again, and finishes
-the pixels that did not converge with a damped Newton iteration; a pixel that no
-undistorted position reproduces to :data:`UNDISTORT_TOLERANCE` (a lens model that folds
-over, beyond where it was calibrated) comes back as NaN rather than wrong.
+:class:`CameraModel` is the model of any camera whose frames arrive on a topic (where
+:mod:`drvs.vision.camera` is the simulation's ideal camera); every method takes and returns
+DRVS corner pixel coordinates (OpenCV's + :data:`OPENCV_OFFSET`). The conventions:
+docs/interface.md ("Units and frames"); why undistortion iterates: docs/design.md.
 
 >>> camera = PinholeCamera(eye=(2.0, 1.0, 3.0), target=(2.0, 1.0, 0.0), fov_deg=60, width=800, height=600)
 >>> lens = CameraModel.from_pinhole(camera, distortion=(-0.25, 0.08, 0.0, 0.0, 0.0))

@@ -1,21 +1,9 @@
 """A vision system's processing: run an algorithm on a frame, put each outline on the floor in ``map``.
 
-The algorithm (from :mod:`drvs.algorithms`) finds outlines in pixels. With a
-depth image, each outline vertex is lifted to 3D with it (the depth of the
-object's own pixel at that vertex; the nearest one, which is the top face seen
-from above) and dropped vertically onto the floor. Seen from overhead, the
-visible top face and sides of a box lie straight above its footprint, so a tall
-box is reported where it stands, not where its top appears on a floor-plane
-projection. Without depth (a plain camera), or where the depth image has no
-valid value (0 or NaN, as real depth cameras report holes), the vertex's ray is
-met with the floor plane z = 0: the paper's ground-plane assumption, exact for
-flat things and displaced away from the camera for tall ones.
-
-The camera model of a frame is :class:`drvs.vision.camera.PinholeCamera` (rendered
-frames) or :class:`drvs.vision.optics.CameraModel` (frames from a camera topic); both
-take the same pixel coordinates.
-
-:class:`FrameCache` lets requests that arrive close together share one render.
+Outline vertices are lifted with the depth image where there is one, else met with the
+floor plane; the frame's camera is a :class:`drvs.vision.camera.PinholeCamera` or a
+:class:`drvs.vision.optics.CameraModel`. :class:`FrameCache` lets requests that arrive close
+together share one render. How and why: docs/design.md ("Vision systems").
 """
 
 from __future__ import annotations

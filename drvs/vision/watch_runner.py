@@ -1,39 +1,9 @@
 """A vision system's standing requests ("watches"): which to evaluate when, and what to send back.
 
-A watch (drvs/WatchObjectBoundary) asks a vision system to run an algorithm on a
-region of interest every ``period`` seconds, for ``duration`` seconds unless
-renewed, and to call ``callback_service`` back with what it finds; it is named by
-(``callback_service``, ``request_id``). The same key again with ``duration`` > 0
-renews it (the region, algorithm, period or ``changes_only`` may change); 0
-cancels it (an unknown watch too: a cancel is always accepted). The grant bounds
-both: the period is at least ``min_period``, the duration at most
-``max_duration``; at most ``max_watches`` stand at once (a new one beyond is
-refused ``BUSY`` until the first expires), so a vision system's work stays bounded
-however many robots ask.
-
-One frame per period for all watches: evaluations fall on a grid of each watch's
-period (multiples of it on the vision system's clock), so watches with the same
-period, or with periods that are multiples of one another, are due at the same
-moments; the vision system takes one frame when at least one watch is due
-(:meth:`WatchRunner.due`), evaluates every due watch on it, and takes none while
-nobody watches. A new watch, or a renewal that changes what it looks at or how
-often, is due at once.
-
-What to send (:meth:`WatchRunner.evaluate`), from the outlines found (each an
-(outline, label) pair as :func:`drvs.vision.pipeline.locate_labelled` gives them):
-
-- without ``changes_only``, the paper's rule: every period, the objects found;
-  nothing when nothing is found.
-- with ``changes_only``: the objects when they differ from those last reported by
-  more than ``change_tolerance`` metres (:func:`outlines_changed`), or when the
-  watch was renewed since (a renewal is also a keep-alive: the robot keeps a
-  watch's outlines until the same vision system replaces them), or when the last
-  callback failed; and exactly one callback with no objects when it had reported
-  something and now finds nothing.
-
-No ROS here and no clock of its own: every call that depends on time takes
-``now`` (the node passes ROS time, so watches follow ``/clock`` in simulation).
-Thread-safe: one lock, ``WatchRunner._lock``, guards the watches.
+Watches keyed by (``callback_service``, ``request_id``), granted and expired; one frame
+for every watch due; with ``changes_only``, a callback only when the outlines changed.
+No ROS and no clock of its own (calls take ``now``); one lock, ``WatchRunner._lock``. The
+service: docs/nodes/vision_system.md; the rules and why: docs/design.md ("Vision systems").
 
 >>> runner = WatchRunner(min_period=0.1, max_duration=60.0, change_tolerance=0.03)
 >>> terms = Terms('/robot/callback_coordinates', 'crate', None, (0, 0, 4, 3), 0.5, True)

@@ -128,8 +128,8 @@ def test_dark_outlines_the_regions_darker_than_the_level_on_their_pixel_edges(da
     assert dark.detect(Frame(image, None, None, 0.0), dark.parse('60')) == []  # below, not at
 
 
-def test_the_readme_shows_the_example_as_it_is():
-    section = (REPO / 'README.md').read_text().split('\n## Adding an algorithm\n', 1)[1].split('\n## ', 1)[0]
+def test_the_tutorial_shows_the_example_as_it_is():
+    section = (REPO / 'docs' / 'tutorials' / 'adding-an-algorithm.md').read_text()
     code = section.split('```python\n', 1)[1].split('```', 1)[0]
     assert code == (PLUGIN / 'drvs_example_plugin.py').read_text()
     entry_point = '[project.entry-points."drvs.algorithms"]\ndark = "drvs_example_plugin:Dark"\n'

@@ -99,17 +99,26 @@ def test_only_merges_into_the_earlier_results(monkeypatch, tmp_path):
     assert (report['targets']['vision']['met'], report['targets']['planner']['met']) == (True, False)
 
 
-def test_the_readme_section_is_replaced_between_its_markers_only(tmp_path):
+def test_the_docs_are_rewritten_between_their_markers_only(tmp_path):
     report = bench_run.merged(None, {'vision': {**_entry('Vision'), 'plots': ['vision-stages.png']}}, 'quick')
-    readme = tmp_path / 'README.md'
-    readme.write_text(f'# T\n\nbefore\n\n{bench_run.README_BEGIN}\nold\n{bench_run.README_END}\n\nafter\n')
-    bench_run.update_readme(report, readme)
-    text = readme.read_text()
-    assert text.startswith('# T\n\nbefore\n\n<!-- performance:begin -->') and text.endswith('\n\nafter\n')
+    page, readme = tmp_path / 'performance.md', tmp_path / 'README.md'
+    (begin, end), (readme_begin, readme_end) = bench_run.PAGE_MARKERS, bench_run.README_MARKERS
+    page.write_text(f'# P\n\nbefore\n\n{begin}\nold\n{end}\n\nafter\n')
+    readme.write_text(f'# R\n\n{readme_begin}\nold\n{readme_end}\n\nafter\n')
+    bench_run.update_docs(report, page, readme)
+    text = page.read_text()
+    assert text.startswith(f'# P\n\nbefore\n\n{begin}\n') and text.endswith(f'\n{end}\n\nafter\n')
     assert 'old' not in text and '### Vision' in text and '### Targets' in text
-    assert '](bench/results/vision-stages.png)' in text
-    bench_run.update_readme(report, readme)
-    assert readme.read_text() == text
+    assert '](../bench/results/vision-stages.png)' in text
+    met = sum(entry['met'] for entry in report['targets'].values())
+    headline = readme.read_text()
+    assert f"**{met} of {len(report['targets'])} benchmark targets met**" in headline
+    assert headline.startswith(f'# R\n\n{readme_begin}\n') and headline.endswith(f'\n{readme_end}\n\nafter\n')
+    bench_run.update_docs(report, page, readme)
+    assert (page.read_text(), readme.read_text()) == (text, headline)
+    readme.write_text('# R\n')
+    with pytest.raises(SystemExit, match='no <!-- targets:begin --> ... <!-- targets:end --> markers'):
+        bench_run.update_docs(report, page, readme)
 
 
 def _entry(title):

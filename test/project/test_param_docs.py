@@ -1,4 +1,5 @@
-"""README.md's parameter tables are generated from the nodes' settings dataclasses: they must agree."""
+"""The node pages' parameter tables (docs/nodes/NODE.md) are generated from the nodes' settings dataclasses:
+they must agree."""
 
 from dataclasses import dataclass
 from pathlib import Path
@@ -6,16 +7,16 @@ from pathlib import Path
 import pytest
 
 from drvs.common.settings import POSITIVE, REQUIRED, Settings, at_least, one_of, param
-from drvs.ros.param_docs import NODES, block, main, rewritten, table
+from drvs.ros.param_docs import NODES, block, main, page, rewritten, table
 
-README = Path(__file__).resolve().parents[2] / 'README.md'
+NODE_PAGES = Path(__file__).resolve().parents[2] / 'docs' / 'nodes'
 
 
 @pytest.mark.parametrize('node', NODES)
-def test_the_readme_table_is_the_one_the_code_generates(node):
-    assert block(README.read_text(), node) == table(
+def test_the_node_pages_table_is_the_one_the_code_generates(node):
+    assert block(page(NODE_PAGES, node).read_text(), node) == table(
         NODES[node]
-    ), f"README.md's {node} parameter table differs from {NODES[node].__name__}: run make docs"
+    ), f"docs/nodes/{node}.md's parameter table differs from {NODES[node].__name__}: run make docs"
 
 
 @dataclass(frozen=True)
@@ -61,18 +62,23 @@ def test_a_field_declared_without_a_meaning_is_refused():
     assert str(error.value) == 'Bare.rate: no meaning; declare it with drvs.common.settings.param'
 
 
-def test_writing_fills_every_block_and_refuses_a_file_without_markers(tmp_path, capsys):
-    blocks = ''.join(f'\n<!-- params:{node}:begin -->\nold\n<!-- params:{node}:end -->\n' for node in NODES)
-    readme = tmp_path / 'README.md'
-    readme.write_text('# Title\n' + blocks + 'end\n')
-    assert main(['--write', str(readme)]) == 0
-    written = readme.read_text()
-    assert written.startswith('# Title\n') and written.endswith('end\n')
-    assert all(block(written, node) == table(cls) for node, cls in NODES.items())
-    assert rewritten(written) == written
-    readme.write_text('# Title\n')
-    assert main(['--write', str(readme)]) == 1
+def test_writing_fills_every_page_and_names_a_page_without_markers(tmp_path, capsys):
+    for node in NODES:
+        page(tmp_path, node).write_text(
+            f'# {node}\n\n<!-- params:{node}:begin -->\nold\n<!-- params:{node}:end -->\nend\n'
+        )
+    assert main(['--write', str(tmp_path)]) == 0
+    for node, cls in NODES.items():
+        written = page(tmp_path, node).read_text()
+        assert written.startswith(f'# {node}\n') and written.endswith('end\n')
+        assert block(written, node) == table(cls)
+        assert rewritten(written, node) == written
+    capsys.readouterr()
+    page(tmp_path, 'drvs_server').write_text('# drvs_server\n')
+    page(tmp_path, 'world_sim').unlink()
+    assert main(['--write', str(tmp_path)]) == 1
     assert capsys.readouterr().err == (
-        f'{readme}: drvs_server: no <!-- params:drvs_server:begin --> ... '
+        f'{tmp_path}/drvs_server.md: drvs_server: no <!-- params:drvs_server:begin --> ... '
         '<!-- params:drvs_server:end --> in the file\n'
+        f'{tmp_path}/world_sim.md: No such file or directory\n'
     )

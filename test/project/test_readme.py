@@ -1,6 +1,6 @@
-"""The README's hand-run example ("Talking to a running DRVS by hand"), run as written.
+"""The hand-run tutorial (docs/tutorials/by-hand.md, "Talking to a running DRVS by hand"), run as written.
 
-The test reads the section's shell blocks from README.md and runs them in order
+The test reads the page's shell blocks and runs them in order
 against a private master: terminal 1's ``roscore`` is the harness's master (its
 ``ROS_MASTER_URI`` is in the environment, which ``scripts/env.sh`` keeps),
 terminal 2's ``run_scenario.sh ... --stay`` runs in the background (with ``--out`` in
@@ -8,58 +8,21 @@ the test's folder), and each
 command of terminal 3 and of the blocks after it runs once the robot is done.
 The ``# ...`` lines under a command are its documented output: every one must
 appear in what it prints, with numbers, times and ``...`` free to differ.
+README.md's short example is made of this page's commands and output, so it is
+run here too.
 """
 
-import re
 from pathlib import Path
 
 from drvs.testing import RosHarness, wait_for
+from drvs.testing.doc_examples import commands, output_pattern, shell_blocks
 
-README = Path(__file__).resolve().parents[2] / 'README.md'
-SECTION = '## Talking to a running DRVS by hand'
-NUMBER = r'-?\d+(?:\.\d+)?'
-
-
-def shell_blocks(section: str) -> list[str]:
-    """The ```sh blocks of one README section, in order."""
-    text = README.read_text()
-    start = text.index(section)
-    end = text.find('\n## ', start + len(section))
-    return re.findall(r'```sh\n(.*?)```', text[start:end], re.S)
+REPO = Path(__file__).resolve().parents[2]
+PAGE = REPO / 'docs' / 'tutorials' / 'by-hand.md'
 
 
-def commands(block: str) -> list[tuple[str, list[str]]]:
-    """(command, documented output lines) per command of a block; continuation lines joined."""
-    result: list[tuple[str, list[str]]] = []
-    pending = ''
-    for line in block.splitlines():
-        if line.startswith('# ') and not pending:
-            if result:
-                result[-1][1].append(line[2:])
-            continue
-        code = line.split('  #', 1)[0].rstrip()  # a trailing comment explains, it is not output
-        if not code:
-            continue
-        pending += code.removesuffix('\\')  # a backslash-newline joins lines, as in bash
-        if not code.endswith('\\') and pending.count('"') % 2 == 0:
-            result.append((pending, []))
-            pending = ''
-        elif not code.endswith('\\'):
-            pending += '\n'  # inside a quoted argument that spans lines
-    return result
-
-
-def output_pattern(documented: str) -> re.Pattern:
-    """``documented`` as a regex: numbers match any number, ``...`` anything, the rest literally."""
-    parts = re.split(rf'(\.\.\.|{NUMBER})', documented)
-    regex = ''.join(
-        '.*' if part == '...' else NUMBER if re.fullmatch(NUMBER, part) else re.escape(part) for part in parts
-    )
-    return re.compile(regex)
-
-
-def test_the_readme_commands_parse_into_the_three_terminals():
-    blocks = shell_blocks(SECTION)
+def test_the_tutorials_commands_parse_into_the_three_terminals():
+    blocks = shell_blocks(PAGE)
     assert len(blocks) >= 3, blocks
     assert [command for command, _ in commands(blocks[0])] == ['source scripts/env.sh', 'roscore']
     ((runner, _),) = commands(blocks[1])
@@ -71,7 +34,7 @@ def test_the_readme_commands_parse_into_the_three_terminals():
 
 
 def test_the_hand_run_example_works_as_written(ros: RosHarness):
-    terminal1, terminal2, terminal3, *more = (commands(block) for block in shell_blocks(SECTION))
+    terminal1, terminal2, terminal3, *more = (commands(block) for block in shell_blocks(PAGE))
     assert [command for command, _ in terminal1] == [
         'source scripts/env.sh',
         'roscore',
@@ -102,3 +65,17 @@ def test_the_hand_run_example_works_as_written(ros: RosHarness):
             assert any(
                 pattern.fullmatch(out.strip()) for out in printed
             ), f'{command!r} did not print {line!r}:\n{result.stdout}\n{result.stderr}'
+
+
+def test_the_readme_example_is_made_of_the_tutorials_commands_and_output():
+    """README.md's ten-line example: each command, and each line of output it shows, is on the page."""
+    (readme,) = [block for block in shell_blocks(REPO / 'README.md') if 'drvs_ask' in block]
+    tutorial = {}
+    for block in shell_blocks(PAGE):
+        for command, documented in commands(block):
+            tutorial.setdefault(command, []).extend(documented)
+    shown = commands(readme)
+    assert len(shown) >= 3, readme
+    for command, documented in shown:
+        assert command in tutorial, f'README.md runs {command!r}, which {PAGE.name} does not'
+        assert set(documented) <= set(tutorial[command]), (command, documented, tutorial[command])

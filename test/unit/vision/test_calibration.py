@@ -224,14 +224,14 @@ def test_the_command_prints_a_static_transform_and_a_world_entry_that_loads(view
 
     number = r'-?\d+\.\d{6}'
     assert re.fullmatch(
-        rf'static transform \(x y z qx qy qz qw parent child\): ({number} ){{7}}map camera_optical_frame',
+        rf'static transform \(x y z qx qy qz qw parent child\): ({number} ){{7}}map cam7_optical_frame',
         lines[9],
     )
     command = lines[10].split()
     assert command[0] == '/usr/lib/tf2_ros/static_transform_publisher'
     assert ' '.join(command[1:]) == lines[9].split(': ', 1)[1]
     x, y, z, qx, qy, qz, qw = map(float, command[1:8])
-    assert command[8:] == ['map', 'camera_optical_frame']
+    assert command[8:] == ['map', 'cam7_optical_frame']  # --name cam7: no frame_id in an image file
     rotation = quaternion_matrix(qx, qy, qz, qw)
     position_error, angle_error = pose_errors(camera, rotation, (x, y, z))
     assert position_error <= POSITION_TOLERANCE and angle_error <= ANGLE_TOLERANCE
@@ -282,6 +282,30 @@ def test_the_json_has_what_the_text_has(views, tmp_path):
     assert np.asarray(pose['rotation']) == pytest.approx(
         quaternion_matrix(*pose['quaternion_xyzw']), abs=1e-9
     )
+
+
+@pytest.mark.parametrize(
+    ('name_args', 'frame'), [([], 'cam1_optical_frame'), (['--name', 'door'], 'door_optical_frame')]
+)
+def test_the_tf_lines_name_the_optical_frame_of_the_named_camera(views, tmp_path, name_args, frame):
+    """An image file carries no frame_id: the tf lines are for NAME_optical_frame (--name, default cam1)."""
+    K = intrinsics_of(CAMERAS['from_the_south'], TINY_RENDERER_SAMPLE)
+    output = tmp_path / 'pose.json'
+    result = run(
+        '--image',
+        views['from_the_south'],
+        *intrinsics_args(K),
+        *tag_args(TAGS[:4]),
+        *name_args,
+        '--json',
+        output,
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    (transform,) = [line for line in lines if line.startswith('static transform ')]
+    (command,) = [line for line in lines if line.startswith('/usr/lib/tf2_ros/static_transform_publisher ')]
+    assert transform.endswith(f' map {frame}') and command.endswith(f' map {frame}')
+    assert json.loads(output.read_text())['frame'] == frame
 
 
 def test_intrinsics_from_a_camera_info_yaml_file(views, tmp_path):
@@ -352,7 +376,9 @@ INTRINSICS = ['--fx', '519.6', '--fy', '519.6', '--cx', '400', '--cy', '299']
         (
             ['--tag', '0:1,1', '--tag', '1:2.5,1.2', '--tag', '2:1.2,2.6', '--tag', '9:3,3'],
             'drvs_calibrate: error: tag 9 is not seen in the image (tags seen: 0, 1, 2, 3, 4, 5); '
-            'check the --tag ids, and that each tag is whole, flat and in focus',
+            'check the --tag ids, and that each tag is whole, flat and in focus, with a white border '
+            '(quiet zone) around its black square at least two of its cells wide (200 px around an '
+            '800 px tag)',
         ),
         (
             ['--tag', '0:1,1', '--tag', '1:2.5,1.2', '--tag', '2:1.2,2.6', '--tag', '0:3,3'],
