@@ -1,1 +1,1 @@
-"""DRVS benchmarks: ``make bench`` (``.venv/bin/python -m bench.run``); see bench/README.md."""
+"""DRVS benchmarks: ``make bench`` (``.venv/bin/python -m bench.run``); results: docs/performance.md."""

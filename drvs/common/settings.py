@@ -124,7 +124,7 @@ def param(
     default_text: str = '',
     separator: str = '',
 ):
-    """A settings field: ``default`` (or :data:`REQUIRED`) and what the README's table says of it.
+    """A settings field: ``default`` (or :data:`REQUIRED`) and what its node's docs page says of it.
 
     :param meaning: one line, what the parameter does.
     :param unit: of the value, e.g. ``s``, ``m``, ``px``.

@@ -197,7 +197,7 @@ def test_source_render_without_a_world_is_refused_with_the_fix(ros):
 
 
 def test_a_camera_calibrated_with_drvs_calibrate_and_a_static_transform_reports_the_truth(graph):
-    """The README's "Your own camera", with the test as the camera: no pose on tf until the
+    """docs/tutorials/your-camera.md, with the test as the camera: no pose on tf until the
     user calibrates one from floor points and publishes it with the printed command."""
     ros = graph
     rotation, eye = optical_pose_of(

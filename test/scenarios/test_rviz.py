@@ -3,7 +3,7 @@
 Slow (a whole scenario plus RViz on a software renderer). Skipped with the reason
 where RViz is not installed (``make rviz-setup`` installs it) or no virtual
 display can be started. With ``DRVS_RVIZ_SCREENSHOT=path.png`` the screenshot is
-also written there (that is how the README's picture is made).
+also written there (that is how docs/rviz.png is made).
 """
 
 import os
