@@ -29,7 +29,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -39,7 +39,7 @@ K = TypeVar('K', bound=Hashable)
 V = TypeVar('V')
 
 
-def _close(value) -> None:
+def _close(value: Any) -> None:
     value.close()
 
 

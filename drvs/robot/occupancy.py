@@ -59,7 +59,7 @@ class GridSpec:
     size: tuple[float, float]
     resolution: float
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.resolution > 0 and math.isfinite(self.resolution)):
             raise OccupancyError(f'resolution: expected a positive number of metres, got {self.resolution}')
         if len(self.size) != 2 or not all(v > 0 and math.isfinite(v) for v in self.size):
