@@ -42,9 +42,11 @@ soak: setup
 bench: setup
 	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --docs) $(BENCH_ARGS)
 
+# ruff, then mypy over the pure packages ([tool.mypy] in pyproject.toml).
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(PY) -m mypy
 
 format: setup
 	$(VENV)/bin/ruff format .

@@ -58,6 +58,14 @@ def generate_interfaces():
         subprocess.run([python, tool, '--initpy', '-p', 'drvs', '-o', out], check=True)
 
 
+def node_scripts():
+    """nodes/*, installed as commands on the environment's PATH (``drvs_check_world`` ...)."""
+    nodes = os.path.join(HERE, 'nodes')
+    return sorted(
+        os.path.join('nodes', name) for name in os.listdir(nodes) if os.path.isfile(os.path.join(nodes, name))
+    )
+
+
 # Every setuptools step (metadata, build, editable) needs the generated packages
 # to exist, so they are made before setup() looks for them.
 generate_interfaces()
@@ -67,5 +75,6 @@ setup(
     version='0.1.0',
     description='Distributed Robotic Vision Service (ROS 1)',
     packages=find_packages(include=['drvs', 'drvs.*']),
+    scripts=node_scripts(),
     python_requires='>=3.11',
 )

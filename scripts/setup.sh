@@ -24,6 +24,7 @@ APT_PACKAGES=(
   python3-diagnostic-msgs ros-diagnostic-msgs python3-visualization-msgs ros-visualization-msgs
   python3-rosbag
   python3-scipy  # make bench: its natural photograph (scipy.misc.face) for the image-sharing comparison
+  python3-mypy  # make lint and test/project/test_types.py: types of the pure packages
 )
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).

@@ -16,8 +16,13 @@ arguments) or an instance with the members of :class:`Algorithm`;
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from importlib.metadata import EntryPoint
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from drvs.vision.frame import Frame
 
 from drvs.algorithms.base import (
     MAX_LENGTH,
@@ -66,7 +71,7 @@ class Parsed:
     def name(self) -> str:
         return self.algorithm.name
 
-    def detect(self, frame) -> list[PixelObject]:
+    def detect(self, frame: Frame) -> list[PixelObject]:
         return self.algorithm.detect(frame, self.params)
 
 
@@ -103,7 +108,7 @@ class AlgorithmSet:
         return Parsed(algorithm, algorithm.parse(params), text)
 
 
-def check_algorithm(algorithm) -> None:
+def check_algorithm(algorithm: object) -> None:
     """Refuse an object that is not an algorithm, naming what it lacks."""
     name = getattr(algorithm, 'name', None)
     if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
@@ -114,7 +119,10 @@ def check_algorithm(algorithm) -> None:
 
 
 def builtin_algorithms(
-    min_area: float = 20.0, epsilon: float = 1.0, tag_height: float = 0.0, tag_heights=None
+    min_area: float = 20.0,
+    epsilon: float = 1.0,
+    tag_height: float = 0.0,
+    tag_heights: Mapping[str, float] | None = None,
 ) -> list[Algorithm]:
     """Fresh instances of the built-in algorithms (``motion`` keeps state: one per camera).
 
@@ -135,7 +143,7 @@ BUILTIN_NAMES = ('apriltag', 'colour', 'motion')
 """The names :func:`builtin_algorithms` answers to; what an empty ``algorithms`` registration means."""
 
 
-def plugin_algorithms(entry_points=None) -> list[Algorithm]:
+def plugin_algorithms(entry_points: Iterable[EntryPoint] | None = None) -> list[Algorithm]:
     """The algorithms of the installed packages' ``drvs.algorithms`` entry points.
 
     A plugin that fails to load, or is not an algorithm, is logged as an error
@@ -172,7 +180,11 @@ def plugin_algorithms(entry_points=None) -> list[Algorithm]:
 
 
 def load_algorithms(
-    min_area: float = 20.0, epsilon: float = 1.0, tag_height: float = 0.0, tag_heights=None, entry_points=None
+    min_area: float = 20.0,
+    epsilon: float = 1.0,
+    tag_height: float = 0.0,
+    tag_heights: Mapping[str, float] | None = None,
+    entry_points: Iterable[EntryPoint] | None = None,
 ) -> AlgorithmSet:
     """The built-ins (see :func:`builtin_algorithms`) and every plugin installed; a plugin that
     reuses a taken name is left out."""

@@ -21,11 +21,17 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject
 from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES, dictionary
+
+if TYPE_CHECKING:
+    from drvs.vision.calibration import Intrinsics
+    from drvs.vision.frame import Frame
 
 SYNTAX = 'apriltag:FAMILY[:ID,ID,...][:h=HEIGHT]'
 MAX_FIELDS = 3
@@ -150,7 +156,7 @@ class AprilTag(Algorithm):
             return query.height
         return self.heights.get(label, self.default_height)
 
-    def detect(self, frame, params: TagQuery) -> list[PixelObject]:
+    def detect(self, frame: Frame, params: TagQuery) -> list[PixelObject]:
         """The tags of ``params`` in ``frame``: corners in the order of the module docstring."""
         import cv2
 
@@ -174,7 +180,7 @@ class AprilTag(Algorithm):
         return found
 
 
-def _checked_height(value, what: str) -> float:
+def _checked_height(value: object, what: str) -> float:
     if (
         isinstance(value, bool)
         or not isinstance(value, int | float)
@@ -184,7 +190,7 @@ def _checked_height(value, what: str) -> float:
     return float(value)
 
 
-def _intrinsics(frame):
+def _intrinsics(frame: Frame) -> Intrinsics:
     """The lens model of the frame's array pixels (OpenCV coordinates) for corner refinement."""
     from drvs.vision.calibration import Intrinsics
     from drvs.vision.optics import CameraModel
@@ -198,7 +204,9 @@ def _intrinsics(frame):
     return Intrinsics(K, tuple(model.D), model.width, model.height)
 
 
-def find_tags(gray: np.ndarray, family: str, intrinsics=None) -> list[tuple[int, np.ndarray]]:
+def find_tags(
+    gray: np.ndarray, family: str, intrinsics: Intrinsics | None = None
+) -> list[tuple[int, np.ndarray]]:
     """(id, corners) of each ``family`` tag in a grey uint8 image: corners (4, 2) in OpenCV pixel
     coordinates, in aruco's order (top-left, top-right, bottom-right, bottom-left as printed).
 
@@ -230,7 +238,7 @@ def _area(outline: np.ndarray) -> float:
     return float(abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) / 2.0)
 
 
-def tag_pose(outline) -> tuple[float, float, float]:
+def tag_pose(outline: ArrayLike) -> tuple[float, float, float]:
     """(x, y, yaw) of a tag from its 4 corners on the floor, in this module's order.
 
     The centre is where the diagonals (corner 0 to 2, 1 to 3) cross; the yaw is the

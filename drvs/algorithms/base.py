@@ -11,8 +11,12 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from drvs.vision.frame import Frame
 
 MAX_LENGTH = 512
 NAME_PATTERN = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
@@ -50,17 +54,17 @@ class Algorithm:
     syntax = ''
     streaming = False
 
-    def parse(self, params: str):
+    def parse(self, params: str) -> Any:
         raise NotImplementedError
 
-    def detect(self, frame, params) -> list[PixelObject]:
+    def detect(self, frame: Frame, params: Any) -> list[PixelObject]:
         raise NotImplementedError
 
-    def observe(self, frame) -> None:
+    def observe(self, frame: Frame) -> None:
         """Take one frame of the camera's stream (algorithms with memory)."""
 
 
-def split_algorithm(text) -> tuple[str, str]:
+def split_algorithm(text: object) -> tuple[str, str]:
     """``NAME[:PARAMS]`` -> (NAME, PARAMS) after checking the syntax only.
 
     :raises AlgorithmError: empty, too long, or not ``NAME[:PARAMS]``.

@@ -10,10 +10,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject, outlines_of_mask
+
+if TYPE_CHECKING:
+    from drvs.vision.frame import Frame
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,7 @@ class ColourModel:
             if not 0 <= value <= 255:
                 raise AlgorithmError(f'algorithm: colour {field} must be in 0-255, got {value}')
             values.append(value)
-        lower, upper = tuple(values[:3]), tuple(values[3:])
+        lower, upper = (values[0], values[1], values[2]), (values[3], values[4], values[5])
         for channel in range(3):
             if lower[channel] > upper[channel]:
                 raise AlgorithmError(
@@ -95,5 +99,5 @@ class Colour(Algorithm):
     def parse(self, params: str) -> ColourModel:
         return ColourModel.parse(params)
 
-    def detect(self, frame, params: ColourModel) -> list[PixelObject]:
+    def detect(self, frame: Frame, params: ColourModel) -> list[PixelObject]:
         return params.detect(frame.rgb, self.min_area, self.epsilon)

@@ -19,10 +19,14 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject, outlines_of_mask
+
+if TYPE_CHECKING:
+    from drvs.vision.frame import Frame
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -90,7 +94,7 @@ class Motion(Algorithm):
         self.history = history
         self.warm_up = warm_up
         self._lock = threading.Lock()  # guards the subtractor, the frame count and the masks
-        self._subtractor = None
+        self._subtractor: Any = None  # a cv2.BackgroundSubtractorMOG2 once a frame is seen
         self._shape: tuple[int, ...] | None = None
         self._frames = 0
         self._observed: deque[_Observed] = deque(maxlen=REMEMBERED)
@@ -113,7 +117,7 @@ class Motion(Algorithm):
         return MotionParams(value)
 
     # -- the stream ----------------------------------------------------------------------------
-    def observe(self, frame) -> None:
+    def observe(self, frame: Frame) -> None:
         """Learn one frame of the camera's stream; a frame already observed is not learnt again."""
         with self._lock:
             if self._find(frame) is not None:
@@ -137,7 +141,7 @@ class Motion(Algorithm):
         return self._frames
 
     # -- detection -----------------------------------------------------------------------------
-    def detect(self, frame, params: MotionParams) -> list[PixelObject]:
+    def detect(self, frame: Frame, params: MotionParams) -> list[PixelObject]:
         """The moving regions of ``frame``: [] until the model has seen :data:`WARM_UP` frames."""
         with self._lock:
             if self._frames < self.warm_up:
@@ -164,13 +168,13 @@ class Motion(Algorithm):
         return mask
 
     # -- internals (called with the lock held) -----------------------------------------------------
-    def _find(self, frame) -> _Observed | None:
+    def _find(self, frame: Frame) -> _Observed | None:
         for observed in self._observed:
             if observed.rgb is frame.rgb and observed.stamp == frame.stamp:
                 return observed
         return None
 
-    def _image(self, frame, reset: bool) -> np.ndarray | None:
+    def _image(self, frame: Frame, reset: bool) -> np.ndarray | None:
         """The frame as the subtractor takes it; a new model for a new image size when ``reset``."""
         import cv2
 

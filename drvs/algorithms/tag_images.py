@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ f 1/1/1 3/3/1 4/4/1
 """
 
 
-def dictionary(family: str):
+def dictionary(family: str) -> Any:  # a cv2.aruco.Dictionary
     """aruco's dictionary of ``family`` (a fresh object: safe to use from any thread)."""
     import cv2
 

@@ -13,7 +13,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -23,7 +23,7 @@ K = TypeVar('K', bound=Hashable)
 V = TypeVar('V')
 
 
-def _close(value) -> None:
+def _close(value: Any) -> None:
     value.close()
 
 

@@ -16,6 +16,7 @@ The node scaffold's use of it: docs/architecture.md.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable
 
 __all__ = ['OTHER', 'Counters', 'PeriodCounts']
 
@@ -78,7 +79,7 @@ class Counters:
         self._values: dict[str, int] = dict.fromkeys(names, 0)
         self._changed = True
 
-    def _check(self, keys) -> None:
+    def _check(self, keys: Iterable[str]) -> None:
         for key in keys:
             if key not in self._values:
                 raise KeyError(f'no counter {key!r} (counters: {", ".join(self._values)})')

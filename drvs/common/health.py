@@ -57,7 +57,7 @@ class Health:
     message: str
     values: list[tuple[str, str]] = field(default_factory=list)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.level not in LEVEL_NAMES:
             raise ValueError(
                 f'level: must be one of 0 (OK), 1 (WARN), 2 (ERROR), 3 (STALE), got {self.level!r}'

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Iterable
+from typing import Any
 
 __all__ = [
     'NON_NEGATIVE',
@@ -87,7 +88,7 @@ class ParamError(ValueError):
 class Range:
     """One kind of range: whether a value is in it, its rule as an error says it, and as a table shows it."""
 
-    holds: Callable[[object], bool]
+    holds: Callable[[Any], bool]
     rule: str
     short: str
 
@@ -116,14 +117,14 @@ def one_of(*choices: str) -> Range:
 
 
 def param(
-    default,
+    default: Any,
     meaning: str,
     *,
     unit: str = '',
     check: Range | None = None,
     default_text: str = '',
     separator: str = '',
-):
+) -> Any:
     """A settings field: ``default`` (or :data:`REQUIRED`) and what its node's docs page says of it.
 
     :param meaning: one line, what the parameter does.
@@ -148,7 +149,7 @@ _TYPES = {'float': float, 'int': int, 'bool': bool, 'str': str}
 _WHAT = {float: 'a number', int: 'an integer', bool: 'true or false', str: 'a string'}
 
 
-def annotation_type(annotation) -> tuple[type, bool]:
+def annotation_type(annotation: Any) -> tuple[type, bool]:
     """(type, optional) of a field annotated float, int, bool, str, or one of them ``| None``."""
     if isinstance(annotation, str):  # postponed annotations
         return _TYPES[annotation.removesuffix(' | None')], annotation.endswith(' | None')
@@ -156,7 +157,7 @@ def annotation_type(annotation) -> tuple[type, bool]:
     return next(a for a in args if a is not type(None)), type(None) in args
 
 
-def typed(name: str, value, annotation):
+def typed(name: str, value: Any, annotation: Any) -> Any:
     """``value`` as the field's type (an int where a float is expected becomes one).
 
     :raises ParamError: ``~name: expected a number, got 'fast'``; a number must be finite.
@@ -173,7 +174,7 @@ def typed(name: str, value, annotation):
     raise ParamError(name, f'expected {_WHAT[expected]}, got {value!r}')
 
 
-def checked(field: dataclasses.Field, value):
+def checked(field: dataclasses.Field, value: Any) -> Any:
     """``value`` of the settings field ``field`` as its type (:func:`typed`), checked against its range.
 
     :raises ParamError: ``~name: <rule>, got <value>``, or as :func:`typed`.
@@ -185,7 +186,7 @@ def checked(field: dataclasses.Field, value):
     return value
 
 
-def check(settings) -> None:
+def check(settings: Any) -> None:
     """Check every field of the dataclass instance ``settings``: its type, then its declared range.
 
     Numbers given as ints where floats are declared are stored as floats.
@@ -212,5 +213,5 @@ class Settings:
     first, then its own checks, raising ``ParamError(name, 'must ..., got ...')``.
     """
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         check(self)

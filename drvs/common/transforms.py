@@ -12,12 +12,13 @@ rotation; one sign makes results comparable).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 ORTHONORMAL_TOLERANCE = 1e-6
 """Largest deviation of ``R @ R.T`` from the identity (and of ``det R`` from 1) accepted as a rotation."""
 
 
-def quaternion_from_matrix(rotation) -> np.ndarray:
+def quaternion_from_matrix(rotation: ArrayLike) -> np.ndarray:
     """The unit quaternion (x, y, z, w), ``w >= 0``, of a 3x3 rotation matrix.
 
     Shepperd's method: the largest of w, x, y, z is found from the diagonal first and
@@ -49,18 +50,18 @@ def quaternion_from_matrix(rotation) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])  # s = 4 z
         q = ((r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4.0, (r[1, 0] - r[0, 1]) / s)
-    q = np.asarray(q, float)
-    q /= np.linalg.norm(q)
-    return (-q if q[3] < 0 else q) + 0.0  # + 0.0: no -0.0 in messages
+    unit = np.asarray(q, float)
+    unit /= np.linalg.norm(unit)
+    return (-unit if unit[3] < 0 else unit) + 0.0  # + 0.0: no -0.0 in messages
 
 
-def matrix_from_quaternion(quaternion) -> np.ndarray:
+def matrix_from_quaternion(quaternion: ArrayLike) -> np.ndarray:
     """The 3x3 rotation matrix of a quaternion (x, y, z, w); it is normalised first.
 
     :raises ValueError: if ``quaternion`` is not 4 finite numbers of non-zero length.
     """
     q = np.asarray(quaternion, float)
-    norm = np.linalg.norm(q) if q.shape == (4,) else 0.0
+    norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
     if not (np.isfinite(norm) and norm > 0):
         raise ValueError(f'quaternion: expected 4 finite numbers (x, y, z, w) not all 0, got {quaternion!r}')
     x, y, z, w = q / norm

@@ -22,7 +22,7 @@ from shapely.geometry import LineString, MultiPoint, Point, Polygon
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
 
-from drvs.algorithms import parse_algorithm
+from drvs.algorithms import AlgorithmSet, Parsed, parse_algorithm
 
 __all__ = [
     'ValidationError',
@@ -101,7 +101,7 @@ def region_of_interest(box: Sequence[float]) -> tuple[float, float, float, float
             -MAX_COORDINATE <= min_x <= max_x <= MAX_COORDINATE
             and -MAX_COORDINATE <= min_y <= max_y <= MAX_COORDINATE
         ):
-            return values
+            return min_x, min_y, max_x, max_y
     if len(values) != len(_BOX_FIELDS):
         raise ValidationError(
             f'region_of_interest: {len(values)} values; expected 4 (min_x, min_y, max_x, max_y)'
@@ -116,7 +116,7 @@ def region_of_interest(box: Sequence[float]) -> tuple[float, float, float, float
         raise ValidationError(f'region_of_interest: min_x {min_x:g} is greater than max_x {max_x:g}')
     if min_y > max_y:
         raise ValidationError(f'region_of_interest: min_y {min_y:g} is greater than max_y {max_y:g}')
-    return values
+    return min_x, min_y, max_x, max_y
 
 
 def region_geometry(box: Sequence[float]) -> BaseGeometry:
@@ -148,7 +148,9 @@ def global_ros_name(field: str, name: str) -> str:
     return name
 
 
-def request_fields(algorithm: str, box: Sequence[float], callback_service: str, algorithms=None):
+def request_fields(
+    algorithm: str, box: Sequence[float], callback_service: str, algorithms: AlgorithmSet | None = None
+) -> tuple[Parsed, tuple[float, float, float, float]]:
     """Check a DetectObjectBoundary request's own fields; return (parsed algorithm, region).
 
     :param algorithms: the :class:`drvs.algorithms.AlgorithmSet` to parse with (default:

@@ -51,7 +51,7 @@ class ControllerSettings:
 class DeadReckoning:
     """Position between fixes: the fix plus the integral of the velocities commanded since it was taken."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._commands: list[tuple[float, float, float]] = []  # (from time, vx, vy), time-ordered
 
     def command(self, now: float, vx: float, vy: float) -> None:
@@ -168,6 +168,7 @@ class Controller:
 
         self.position = self.dead_reckoning.predict(fix.position, fix.stamp, now)
         self._set_goal(station.position)
+        assert self.goal is not None  # set just now
         to_goal = _distance(self.position, self.goal)
 
         if to_goal <= s.goal_tolerance:
@@ -195,12 +196,14 @@ class Controller:
         return self._follow(to_goal)
 
     def _where(self) -> str:
+        assert self.position is not None  # called once the robot is located
         return f'({self.position[0]:.2f}, {self.position[1]:.2f})'
 
     def _set_goal(self, goal: Point) -> None:
         """A new goal (or the station found elsewhere) needs a new search; D* Lite keeps its goal."""
         if self.goal is not None and _distance(goal, self.goal) <= self.settings.goal_tolerance / 2:
             return
+        assert self.position is not None  # the robot is located before its goal is set
         self.goal = goal
         spec = self.grid.spec
         self._planner = DStarLite(self.grid.costs, spec.cell_of(self.position), spec.cell_of(goal))
@@ -209,6 +212,7 @@ class Controller:
 
     def _plan(self) -> None:
         """(Re-)extract the path when the map changed near it, the robot left it, or it is blocked."""
+        assert self.position is not None and self.goal is not None and self._planner is not None  # by _decide
         spec = self.grid.spec
         start = spec.cell_of(self.position)
         off_path = bool(self.path) and self._distance_to_path() > 2 * self.settings.lookahead
@@ -243,11 +247,13 @@ class Controller:
         )
 
     def _distance_to_path(self) -> float:
+        assert self.position is not None  # a path starts where the robot was located
         points = np.asarray(self.path)
         return float(np.hypot(points[:, 0] - self.position[0], points[:, 1] - self.position[1]).min())
 
     def _follow(self, to_goal: float) -> tuple[float, float]:
         """Steer to the point ``lookahead`` metres along the path past the nearest path vertex."""
+        assert self.position is not None  # a path starts where the robot was located
         s = self.settings
         points = np.asarray(self.path)
         window = points[self._progress :]
@@ -273,6 +279,7 @@ class Controller:
 
     def _arrive(self, now: float, fix: Fix) -> tuple[float, float]:
         """Stopped within tolerance by prediction; arrived when a later fix agrees."""
+        assert self.goal is not None  # arriving means near the goal
         if self._stopped_at is None:
             self._stopped_at = now
             self.state = ARRIVING

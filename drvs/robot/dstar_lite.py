@@ -42,6 +42,7 @@ import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 FREE = 1.0
 SQRT2 = math.sqrt(2.0)
@@ -77,7 +78,7 @@ Key = tuple[int | float, int | float]
 class _Queue:
     """A priority queue of vertices with lazy deletion: stale heap entries are skipped on read."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._heap: list[tuple[int | float, int | float, int, int]] = []
         self._key: dict[int, Key] = {}
         self._tie = itertools.count()
@@ -126,7 +127,7 @@ class DStarLite:
     :param costs: 2-D array-like (rows, cols) of cell costs, each >= 1 or inf.
     """
 
-    def __init__(self, costs, start: Cell, goal: Cell):
+    def __init__(self, costs: ArrayLike, start: Cell, goal: Cell):
         costs = np.asarray(costs, dtype=float)
         if costs.ndim != 2 or costs.size == 0:
             raise PlanningError(f'costs: expected a non-empty 2-D grid, got shape {costs.shape}')
@@ -175,7 +176,7 @@ class DStarLite:
     def _cell(self, index: int) -> Cell:
         return divmod(index, self.cols)
 
-    def _neighbour_table(self) -> list[tuple[tuple[int, float, int, int], ...]]:
+    def _neighbour_table(self) -> list[tuple[tuple[int, int, int, int], ...]]:
         """Per vertex: (neighbour, step length, side cell 1, side cell 2); sides -1 for straight steps."""
         rows, cols = self.rows, self.cols
         ints = list(range(rows * cols))  # one int object per index, shared by the entries
@@ -596,7 +597,7 @@ class DStarLite:
         return self._cell(self._goal)
 
 
-def path_cost(costs, path: Sequence[Cell]) -> float:
+def path_cost(costs: ArrayLike, path: Sequence[Cell]) -> float:
     """The cost of following ``path`` on ``costs`` with the planner's edge costs (for checks)."""
     costs = np.asarray(costs, dtype=float)
     total = 0.0

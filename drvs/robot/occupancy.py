@@ -9,7 +9,7 @@ the costs are what they are: docs/design.md ("The blind robot").
 from __future__ import annotations
 
 import math
-from collections.abc import Hashable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +36,7 @@ class GridSpec:
     size: tuple[float, float]
     resolution: float
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.resolution > 0 and math.isfinite(self.resolution)):
             raise OccupancyError(f'resolution: expected a positive number of metres, got {self.resolution}')
         if len(self.size) != 2 or not all(v > 0 and math.isfinite(v) for v in self.size):
@@ -125,6 +125,10 @@ def crosses_margin(path: Sequence[Cell], costs: np.ndarray) -> bool:
     return any(costs[cell] != FREE for cell in path[free[0] : free[-1] + 1])
 
 
+Source = tuple[str, str]
+"""Who reported outlines: (role, vision system)."""
+
+
 class ObstacleMemory:
     """The latest outlines per source, each forgotten ``ttl`` seconds after it was last heard."""
 
@@ -132,9 +136,9 @@ class ObstacleMemory:
         if not (ttl > 0 and math.isfinite(ttl)):
             raise OccupancyError(f'obstacle_ttl: expected a positive number of seconds, got {ttl}')
         self.ttl = ttl
-        self._sources: dict[Hashable, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)
+        self._sources: dict[Source, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)
 
-    def observe(self, source: Hashable, outlines: Sequence[Polygon], now: float, linger: float = 0.0) -> None:
+    def observe(self, source: Source, outlines: Sequence[Polygon], now: float, linger: float = 0.0) -> None:
         """``source`` reports everything it now sees: its earlier outlines are replaced.
 
         :param linger: a report of nothing keeps the outlines it replaces this many seconds
@@ -147,7 +151,7 @@ class ObstacleMemory:
             return
         self._sources[source] = (now + self.ttl, list(outlines))
 
-    def current(self, now: float) -> dict[Hashable, list[Polygon]]:
+    def current(self, now: float) -> dict[Source, list[Polygon]]:
         """Outlines of every source heard within ``ttl``; older sources are forgotten."""
         for source in [s for s, (until, _) in self._sources.items() if now > until]:
             del self._sources[source]

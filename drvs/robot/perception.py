@@ -9,7 +9,7 @@ what the robot does with them: docs/nodes/blind_robot.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 
 from shapely.geometry import Point as Point2
@@ -88,7 +88,7 @@ class RegionPolicy:
         station: Fix | None,
         position: Point | None,
         velocity: Point = (0.0, 0.0),
-        lost=(),
+        lost: Collection[str] = (),
     ) -> dict[str, Region]:
         """Role -> region, from the newest fixes, the predicted ``position`` (None: the fix's), the
         commanded ``velocity`` and the roles whose vision systems all say they see nothing of it
@@ -98,6 +98,7 @@ class RegionPolicy:
         here = position or (fix.position if fix is not None else None)
         speed = math.hypot(*velocity)
         if fix is not None and 'self' not in lost and now - fix.stamp <= self.fix_timeout / 2:
+            assert here is not None  # with a fix
             lead = margin / 2 / speed if speed > 0 else 0.0  # the box reaches further where it goes
             ahead = (here[0] + lead * velocity[0], here[1] + lead * velocity[1])
             regions['self'] = Region(
@@ -110,6 +111,7 @@ class RegionPolicy:
                 spanned(low, high, margin, size), spanned(low, high, margin / 4, size)
             )
         if fix is not None and station is not None:
+            assert here is not None  # with a fix
             # Heading away from the station (a detour), the box reaches as far again where it goes.
             lead = self.roi_margin / speed if speed > 0 else 0.0
             heading = (here[0] + lead * velocity[0], here[1] + lead * velocity[1])
@@ -322,7 +324,7 @@ class Perception:
             )
         outlines = [list(points) for points in outlines]
         polygons = tuple(p for p in (to_polygon(points) for points in outlines) if p is not None)
-        poses = ()
+        poses: tuple[tuple[float, float, float], ...] = ()
         if algorithm.split(':', 1)[0] == 'apriltag':
             from drvs.algorithms.apriltag import tag_pose
 

@@ -170,10 +170,10 @@ class WatchSchedule(Scheduled):
         now = self.clock()
         if now < self._last_sent + self.min_interval:
             return None
-        due = {}
+        due: dict[str, str] = {}
         for role in self._watches:
             at, reason = self._due_at(role, now)
-            if at <= now:
+            if at <= now and reason is not None:  # a time is due with its reason
                 due[role] = reason
         if not due:
             return None
@@ -181,6 +181,7 @@ class WatchSchedule(Scheduled):
         watch = self._watches[role]
         if due[role] == CANCEL:
             region, duration = watch.region or watch.asked, 0.0
+            assert region is not None  # a watch to cancel was asked for
         else:
             region, duration = self._wanted[role].box, self.duration
         watch.call = WatchCall(role, region, self.periods[role], duration, due[role])
@@ -212,6 +213,7 @@ class WatchSchedule(Scheduled):
         """Record DRVS's answer to the call for ``role`` (with the granted ``duration``)."""
         watch = self._watches[role]
         call, watch.call, watch.unsure = watch.call, None, False
+        assert call is not None, f'no call for {role!r} in flight'
         if call.duration == 0:
             return self._cancelled(watch, status)
         outcome = self.retries.on_response(role, status, retry_after, message)
@@ -226,6 +228,7 @@ class WatchSchedule(Scheduled):
         """Record that the call for ``role`` got no response (server down, timeout, ...)."""
         watch = self._watches[role]
         call, watch.call = watch.call, None
+        assert call is not None, f'no call for {role!r} in flight'
         if call.duration == 0:
             self.retries.failed += 1
             return self._cancelled(watch, None)
@@ -243,7 +246,7 @@ class WatchSchedule(Scheduled):
         if self.invalid is not None or role not in self._wanted:
             return math.inf, None
         wanted = self._wanted[role]
-        if watch.expires <= now:
+        if watch.expires <= now or watch.region is None:  # (no region: never granted, so expired)
             at, reason = now, NEW
         elif not _inside(wanted.needed, watch.region) or _area(wanted.box) < self.shrink.get(
             role, SHRINK

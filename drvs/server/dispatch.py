@@ -103,7 +103,8 @@ class Dispatcher:
         with self._lock:
             if self._stopping:
                 raise Busy('busy: the server is shutting down; try again later', self.retry_after)
-            accepted, skipped = [], []
+            accepted: list[Hashable] = []
+            skipped: list[Hashable] = []
             for destination in destinations:
                 load = len(self._queues.get(destination, ())) + (destination in self._in_flight)
                 (skipped if load >= self.max_per_destination else accepted).append(destination)
@@ -154,8 +155,11 @@ class Dispatcher:
 
     def _begin(self, destination: Hashable, item: object) -> bool:
         """Try ``begin``; True if the item is on its way or done with (an exception is logged)."""
+        begin = self.begin
+        if begin is None:  # nothing to try: the workers send it
+            return False
         try:
-            return self.begin(destination, item, lambda: self._finished(destination))
+            return begin(destination, item, lambda: self._finished(destination))
         except Exception:
             logger.exception('sending to %s failed unexpectedly', destination)
             self._finished(destination)

@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from shapely.geometry import Polygon
 
@@ -33,7 +34,14 @@ from drvs.server.spatial_index import FieldOfViewIndex
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = ['Refusal', 'Registration', 'Registry', 'ValidationError', 'algorithm_names']
+__all__ = ['Client', 'Refusal', 'Registration', 'Registry', 'ValidationError', 'algorithm_names']
+
+
+class Client(Protocol):
+    """What the server forwards through, made for each vision system by the caller's ``make_client``."""
+
+    def close(self) -> None: ...
+
 
 REGISTERED, MOVED, CHANGED, RENEWED, UNREGISTERED, NOT_REGISTERED = (
     'registered',
@@ -95,7 +103,7 @@ class Registration:
     provider: str = ''  # caller id of the node that registered it
     instance: str = ''  # which process serves it (the server uses its rosrpc URI)
     algorithms: frozenset[str] = _BUILTINS  # the algorithm names it runs
-    client: object = field(default=None, repr=False, compare=False)  # what the server forwards through
+    client: Client | None = field(default=None, repr=False, compare=False)  # what the server forwards through
     watch_service: bool = False  # it serves drvs/WatchObjectBoundary too (:mod:`drvs.server.watch_table`)
 
 
@@ -161,7 +169,7 @@ class Registry:
         service_name: str,
         field_of_view: Sequence[Sequence[float]],
         provider: str = '',
-        make_client: Callable[[str], object] | None = None,
+        make_client: Callable[[str], Client] | None = None,
         instance: str = '',
         algorithms: Sequence[str] = (),
         watch_service: bool = False,
@@ -205,11 +213,11 @@ class Registry:
             else:
                 client = old.client
             moved = old is None or old.field_of_view != points
-            if moved:
-                change = REGISTERED if old is None else MOVED
-            else:
+            if old is not None and not moved:
                 polygon = old.polygon
                 change = RENEWED if old.algorithms == names else CHANGED
+            else:
+                change = REGISTERED if old is None else MOVED
             entry = self._entries[service_name] = Registration(
                 service_name,
                 points,
@@ -304,7 +312,8 @@ class Registry:
                 expires_at, name = heapq.heappop(self._expiries)
                 entry = self._entries.get(name)
                 if entry is not None and entry.expires_at <= now:
-                    removed.append(self._remove(name))
+                    self._remove(name)
+                    removed.append(entry)
             if len(self._expiries) > 4 * len(self._entries) + 64:  # renewals leave stale heap items
                 self._expiries = [(e.expires_at, e.service_name) for e in self._entries.values()]
                 heapq.heapify(self._expiries)

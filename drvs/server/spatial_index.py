@@ -14,6 +14,7 @@ import struct
 import threading
 from array import array
 from collections.abc import Hashable, Iterator, Sequence
+from typing import Any
 
 from shapely.errors import ShapelyError
 from shapely.geometry import LineString, Point, Polygon
@@ -151,7 +152,7 @@ class _Cell:
 
     __slots__ = ('boxes', 'entries')
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.boxes = b''  # min_x, min_y, max_x, max_y of each entry as doubles, in entry order
         # (key, geometry, its vertices x, y, ... or None, separating_axes() or None, its tolerance,
         # value), the vertices and the axes as packed doubles (bytes)
@@ -199,7 +200,7 @@ class FieldOfViewIndex:
     Queries answer each polygon's value (given to :meth:`insert`; by default its key).
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._lock = threading.Lock()
         self._levels: dict[int, _Level] = {}
         self._where: dict[Hashable, list] = {}  # key -> [level, row, column, cell, slot in the cell]
@@ -231,11 +232,12 @@ class FieldOfViewIndex:
             gives its entry, so that a match need not look each one up again.
         """
         if vertices is None:
-            outline = _vertices(geometry)
+            outline = _vertices(geometry) or []
         else:
             outline = [(float(point[0]), float(point[1])) for point in vertices]
             if len(outline) > 1 and outline[0] == outline[-1]:
                 outline.pop()
+        box: tuple[float, ...]
         if outline:
             values = [v for point in outline for v in point]
             xs, ys = values[0::2], values[1::2]
@@ -247,11 +249,11 @@ class FieldOfViewIndex:
         if (
             values
             and min(max_x - min_x, max_y - min_y) > tolerance
-            and (min(map(abs, values)) >= TINY or not any(0 < abs(v) < TINY for v in values))
+            and (min(abs(v) for v in values) >= TINY or not any(0 < abs(v) < TINY for v in values))
         ):
-            corners, axes = array('d', values).tobytes(), separating_axes(outline)
-            if axes is not None:
-                axes = axes.tobytes()
+            corners: bytes | None = array('d', values).tobytes()
+            axis_array = separating_axes(outline)
+            axes = axis_array.tobytes() if axis_array is not None else None
         else:  # no outline, thinner than the tolerance, or TINY values (none of them everyday): GEOS
             corners = axes = None
         entry = (key, geometry, corners, axes, tolerance, key if value is _KEY else value)
@@ -318,12 +320,12 @@ class FieldOfViewIndex:
         return True
 
     # -- queries -----------------------------------------------------------------------------
-    def candidates(self, bounds: Sequence[float]) -> list[Hashable]:
+    def candidates(self, bounds: Sequence[float]) -> list[Any]:
         """The values of the polygons whose bounding box meets ``bounds`` (min_x, min_y, max_x, max_y)."""
         with self._lock:
             return [entry[5] for entry in self._candidates(bounds)]
 
-    def query(self, region: BaseGeometry) -> list[Hashable]:
+    def query(self, region: BaseGeometry) -> list[Any]:
         """The values of the polygons whose interior meets that of any geometry ``region`` (GEOS)."""
         with self._lock:
             entries = self._candidates(region.bounds)
@@ -340,7 +342,7 @@ class FieldOfViewIndex:
             if x0 <= qx1 and qx0 <= x1 and y0 <= qy1 and qy0 <= y1
         ]
 
-    def query_box(self, bounds: Sequence[float]) -> list[Hashable]:
+    def query_box(self, bounds: Sequence[float]) -> list[Any]:
         """The values of the polygons whose interior meets the region (min_x, min_y, max_x, max_y).
 
         The region is a rectangle, or a segment or a point when it has no width

@@ -200,7 +200,7 @@ class WatchTable:
             request_id,
             algorithm,
             algorithm_name,
-            tuple(float(v) for v in region),
+            (float(region[0]), float(region[1]), float(region[2]), float(region[3])),
             callback_service,
             max(period, self.min_period),
             granted,

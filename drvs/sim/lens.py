@@ -55,7 +55,7 @@ class Lens:
         interpolation: int = cv2.INTER_LINEAR,
     ):
         self.camera = camera
-        self.sample_offset = tuple(sample_offset)
+        self.sample_offset = (sample_offset[0], sample_offset[1])
         self.interpolation = interpolation
         self.model = CameraModel.from_pinhole(camera, self.sample_offset, tuple(distortion))
         self.canvas = camera
@@ -150,7 +150,11 @@ class Lens:
             getattr(camera, 'height', None),
             getattr(camera, 'fov_deg', None),
         )
-        if got != expected or frame.rgb.shape[:2] != (self.canvas.height, self.canvas.width):
+        if (
+            not isinstance(camera, PinholeCamera)
+            or got != expected
+            or frame.rgb.shape[:2] != (self.canvas.height, self.canvas.width)
+        ):
             raise ValueError(
                 f'Lens.apply: expected a frame rendered with the lens canvas ({self.canvas.width}x'
                 f'{self.canvas.height}, fov {self.canvas.fov_deg:.6g} deg), got {frame.rgb.shape[1]}x'

@@ -15,6 +15,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from shapely.geometry import LineString, Point, Polygon, box
@@ -22,6 +23,9 @@ from shapely.ops import unary_union
 from shapely.prepared import prep
 
 from drvs.sim.world import Body, World
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 ROBOT_FIGURES = ('requests', 'watch_calls', 'callbacks', 'callback_bytes')
 """The counters of drvs/RobotStatus a robot's row of the summary carries."""
@@ -89,7 +93,7 @@ class RunRecord:
     cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
     wall_seconds: float = 0.0  # wall-clock seconds from the run's first status to its last counted one
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.robots = {r.name: self.robots.get(r.name) or RobotRecord(r.name) for r in self.world.robots}
 
 
@@ -98,7 +102,12 @@ def clearance(body: Body) -> float:
     return math.hypot(*body.size[:2]) / 2.0
 
 
-def hindsight_shortest_length(world: World, radius: float, start=None, goal=None) -> float:
+def hindsight_shortest_length(
+    world: World,
+    radius: float,
+    start: tuple[float, float] | None = None,
+    goal: tuple[float, float] | None = None,
+) -> float:
     """Length of the shortest route from ``start`` to ``goal`` among static obstacles.
 
     By default from the (first) robot's start to its station. Obstacles are the static
@@ -337,7 +346,7 @@ def draw(record: RunRecord, path: str | Path) -> None:
     picture(record).savefig(path, bbox_inches='tight')
 
 
-def picture(record: RunRecord):
+def picture(record: RunRecord) -> Figure:
     """The run's picture as a matplotlib Figure (no pyplot, nothing global), its legend beside it.
 
     Floor, the robots' map, every camera (position and dashed field of view, one legend
@@ -426,7 +435,7 @@ def picture(record: RunRecord):
     if views:
         axes.plot([], [], 's', color='gold', markeredgecolor='black', markersize=9, label='camera')
 
-    def rgb(colour):
+    def rgb(colour: tuple[int, int, int]) -> tuple[float, ...]:
         return tuple(c / 255.0 for c in colour)
 
     for obstacle in world.objects:
@@ -524,10 +533,10 @@ def picture(record: RunRecord):
             )
         if robot.tag_poses:
             # The robot's poses as DRVS saw its tag: position and heading, not predicted.
-            xs, ys, headings = (np.asarray(v) for v in zip(*robot.tag_poses, strict=True))
+            tag_xs, tag_ys, headings = (np.asarray(v) for v in zip(*robot.tag_poses, strict=True))
             axes.quiver(
-                xs,
-                ys,
+                tag_xs,
+                tag_ys,
                 np.cos(headings),
                 np.sin(headings),
                 angles='xy',

@@ -20,6 +20,7 @@ import logging
 import math
 import shutil
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +71,7 @@ def render_view(client: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndar
     return rgb, np.reshape(np.asarray(depth, np.float32), (height, width))
 
 
-def _rgba(colour) -> list[float]:
+def _rgba(colour: tuple[int, int, int]) -> list[float]:
     return [c / 255.0 for c in colour] + [1.0]
 
 
@@ -123,18 +124,20 @@ class Scene:
         self.bodies[body.name] = pybullet.createMultiBody(
             0, collision, visual, [0, 0, half[2]], physicsClientId=self.client
         )
-        self.sizes[body.name] = tuple(body.size)
+        self.sizes[body.name] = body.size
         if body.tag is not None:
             self.tags[body.name] = self._add_tag(body)
         self.set_pose(body.name, body.position[0], body.position[1], body.yaw)
 
     def _add_tag(self, body: Body) -> int:
         """A visual-only textured quad showing ``body.tag``; placed by :meth:`set_pose`."""
+        tag = body.tag
+        assert tag is not None  # _add calls it for a tagged body
         if self.texture_folder is None:
             self.texture_folder = Path(tempfile.mkdtemp(prefix='drvs_scene_tags_'))
         quad = write_quad(self.texture_folder)
-        texture = write_tag_image(self.texture_folder, body.tag.family, body.tag.id)
-        side = quad_side(body.tag.family, body.tag.size)
+        texture = write_tag_image(self.texture_folder, tag.family, tag.id)
+        side = quad_side(tag.family, tag.size)
         shape = pybullet.createVisualShape(
             pybullet.GEOM_MESH, fileName=str(quad), meshScale=[side, side, 1.0], physicsClientId=self.client
         )
@@ -178,7 +181,7 @@ class Scene:
                 self.set_pose(name, float(x), float(y), float(yaw))
 
     # -- contacts ------------------------------------------------------------------------------
-    def distances(self, name: str, others, within: float) -> dict[str, float]:
+    def distances(self, name: str, others: Iterable[str], within: float) -> dict[str, float]:
         """Signed distance (negative = penetration) from ``name`` to each of ``others`` closer
         than ``within`` metres."""
         found = {}
@@ -213,5 +216,5 @@ class Scene:
     def __enter__(self) -> Scene:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from drvs.sim.scene import Scene
-from drvs.sim.world import World
+from drvs.sim.world import Body, Camera, World
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -24,7 +24,7 @@ MAX_STEP = 0.2
 """Simulated seconds; a longer step (a stalled machine) is simulated as this."""
 
 
-def loop_of(start, waypoints) -> list[tuple[float, float]]:
+def loop_of(start: Sequence[float], waypoints: Sequence[Sequence[float]]) -> list[tuple[float, float]]:
     """The closed loop a moving body follows: its start, then each waypoint, then back to the start.
 
     Consecutive repeats are dropped, so a start equal to the first waypoint is not doubled.
@@ -42,7 +42,9 @@ def loop_of(start, waypoints) -> list[tuple[float, float]]:
     return loop
 
 
-def position_on_loop(loop, speed: float, elapsed: float, closed: bool = True) -> tuple[float, float]:
+def position_on_loop(
+    loop: Sequence[tuple[float, float]], speed: float, elapsed: float, closed: bool = True
+) -> tuple[float, float]:
     """Where a body that started at ``loop[0]`` is after ``elapsed`` seconds at ``speed`` m/s.
 
     With ``closed`` false the body walks the points once and stays at the last.
@@ -71,7 +73,7 @@ def position_on_loop(loop, speed: float, elapsed: float, closed: bool = True) ->
     return loop[0]
 
 
-def mount_position(camera, elapsed: float) -> tuple[float, float]:
+def mount_position(camera: Camera, elapsed: float) -> tuple[float, float]:
     """Where a camera on a moving mount (world file ``waypoints`` + ``speed``) is after ``elapsed`` s."""
     start = camera.position[:2]
     if not camera.moving:
@@ -144,7 +146,7 @@ class RobotState:
         }
 
 
-def _radius(body) -> float:
+def _radius(body: Body) -> float:
     """Half the diagonal of a body's footprint: no part of it is farther from its centre."""
     return math.hypot(*body.size[:2]) / 2.0
 

@@ -8,6 +8,7 @@ checked by :mod:`drvs.sim.world_sense`. The keys are documented in ``worlds/READ
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +42,7 @@ class WorldError(ValueError):
     ``FILE: N problems:`` followed by one indented line per problem.
     """
 
-    def __init__(self, path: str | Path, problems):
+    def __init__(self, path: str | Path, problems: Iterable[Problem]):
         self.path = Path(path)
         self.problems = tuple(problems)
         if len(self.problems) == 1:
@@ -193,7 +194,7 @@ def _unknown_entry(where: str, name: str, known: list[str]) -> Problem:
     return Problem(where, '', f'no entry named {name!r} (known: {", ".join(known) or "none"})')
 
 
-def box_footprint(centre, size, yaw: float) -> list[tuple[float, float]]:
+def box_footprint(centre: Sequence[float], size: Sequence[float], yaw: float) -> list[tuple[float, float]]:
     """Corners of a yawed rectangle centred at ``centre`` with ``size`` [x, y], counter-clockwise."""
     cx, cy = centre
     hx, hy = size[0] / 2.0, size[1] / 2.0

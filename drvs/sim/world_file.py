@@ -139,7 +139,8 @@ def _integers(value, n: int, low: int, high: int, what: str) -> tuple[int, ...]:
 
 
 def _colour(value) -> tuple[int, int, int]:
-    return _integers(value, 3, 0, 255, '[r, g, b]')
+    r, g, b = _integers(value, 3, 0, 255, '[r, g, b]')
+    return r, g, b
 
 
 def _points(value) -> tuple[tuple[float, float], ...]:
@@ -148,9 +149,10 @@ def _points(value) -> tuple[tuple[float, float], ...]:
     points = []
     for i, point in enumerate(value):
         try:
-            points.append(_vector(point, 2, '[x, y]'))
+            x, y = _vector(point, 2, '[x, y]')
         except _Invalid as error:
             raise _Invalid(error.message, f'[{i}]') from None
+        points.append((x, y))
     return tuple(points)
 
 
@@ -310,6 +312,7 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
         return None
     kind = data.get('kind', 'static') if role == 'object' else role
     label = report.entry(_label(data, where, role, fleet))
+    keys: tuple[str, ...]
     if role == 'object' and kind not in KINDS:  # reported below; any object key may apply
         keys, what, hints = HUMAN_KEYS, 'an object', {'tag': _TAGS_ONLY}
     else:
@@ -350,7 +353,7 @@ def _camera(report: Report, data, index: int) -> tuple[str, Camera] | None:
     name = data.get('name')
     label = report.entry(f'vision_system {name!r}' if _is_node_name(name) else where)
     entry = _Entry(report, label, data, CAMERA_KEYS, 'a vision system')
-    entry.read('name', _node_name)
+    node_name = entry.read('name', _node_name)
     position = entry.read('position', _vector, 3, '[x, y, z]')
     if position is not None and position[2] <= 0:
         entry.problem('position', f'expected a camera above the floor (z > 0), got {list(position)}')
@@ -374,7 +377,8 @@ def _camera(report: Report, data, index: int) -> tuple[str, Camera] | None:
         )
     if entry.broken:
         return None
-    return label, Camera(name, position, fov, tuple(resolution), target, up, waypoints, speed, distortion)
+    width, height = resolution
+    return label, Camera(node_name, position, fov, (width, height), target, up, waypoints, speed, distortion)
 
 
 def _models(

@@ -5,6 +5,7 @@ models that find what they should and nothing else, cameras that see the floor (
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,10 +16,17 @@ from drvs.algorithms.apriltag import TagQuery
 from drvs.sim.world import (
     KINDS,
     Body,
+    Camera,
     Problem,
     box_footprint,
 )
 from drvs.vision.camera import PinholeCamera
+
+Labelled = tuple[str, Body]
+"""A body with the label of its entry in the file (``objects[2]``)."""
+CrewEntry = tuple[str, Labelled | None, Labelled | None, dict[str, tuple[str, object]]]
+"""A robot's entry: its label, its body and its station's (None where they did not read), and its
+own colour models by role (text, parsed)."""
 
 AREA = 1e-9
 """Square metres below which two footprints touch rather than overlap."""
@@ -29,7 +37,7 @@ EDGE = 1e-9
 class Report:
     """The problems found so far; :meth:`sorted` lists them in the order the file names its entries."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.problems: list[Problem] = []
         self.entries: list[str] = ['', 'floor']
 
@@ -50,11 +58,13 @@ def _n(value: float) -> str:
     return f'{round(value, 3):g}'
 
 
-def _floor_text(floor) -> str:
+def _floor_text(floor: tuple[float, float]) -> str:
     return f'the floor (x 0..{_n(floor[0])}, y 0..{_n(floor[1])})'
 
 
-def _off_floor(point, footprint, floor) -> str | None:
+def _off_floor(
+    point: tuple[float, float], footprint: Sequence[tuple[float, float]], floor: tuple[float, float]
+) -> str | None:
     """Why a body at ``point`` with ``footprint`` is not on the floor, or None."""
     if not (0 <= point[0] <= floor[0] and 0 <= point[1] <= floor[1]):
         return f'{list(point)} is outside {_floor_text(floor)}'
@@ -68,7 +78,7 @@ def _off_floor(point, footprint, floor) -> str | None:
     )
 
 
-def check_floor(report: Report, bodies, floor) -> None:
+def check_floor(report: Report, bodies: Iterable[Labelled], floor: tuple[float, float]) -> None:
     """Every body, and a human at each of its waypoints, stands within the floor."""
     for label, body in bodies:
         reason = _off_floor(body.position, body.footprint(), floor)
@@ -80,7 +90,7 @@ def check_floor(report: Report, bodies, floor) -> None:
                 report.add(label, f'waypoints[{i}]', reason)
 
 
-def check_overlaps(report: Report, bodies) -> None:
+def check_overlaps(report: Report, bodies: Iterable[Labelled]) -> None:
     """Bodies at their start poses may touch, not overlap; the later one in the file is named."""
     shapes = [(label, Polygon(body.footprint())) for label, body in bodies]
     for i, (label, shape) in enumerate(shapes):
@@ -102,7 +112,7 @@ def _walk(human: Body) -> list[tuple[float, float]]:
     return points
 
 
-def check_walks(report: Report, humans, statics) -> None:
+def check_walks(report: Report, humans: Iterable[Labelled], statics: Iterable[Labelled]) -> None:
     """A human's walk keeps clear of the static objects unless it says ``through_obstacles: true``
     (the simulation walks it through them). Its start pose is :func:`check_overlaps`' business."""
     boxes = [(label, Polygon(body.footprint())) for label, body in statics]
@@ -150,12 +160,18 @@ _OBSTACLES = {'obstacle', 'human'}
 _DECOY = ' (or decoy: true if that is on purpose)'
 
 
-def _finds(model: ColourModel | TagQuery, body: Body) -> bool:
-    """Whether ``model`` finds ``body``: its colour (a flat colour), or its tag."""
+def _finds(model: object, body: Body) -> bool:
+    """Whether ``model`` (a :class:`ColourModel` or :class:`TagQuery`) finds ``body``: its colour
+    (a flat colour), or its tag."""
     if isinstance(model, ColourModel):
         return all(lo <= c <= hi for lo, c, hi in zip(model.lower, body.colour, model.upper, strict=True))
     tag = body.tag
-    return tag is not None and tag.family == model.family and (not model.ids or tag.id in model.ids)
+    return (
+        isinstance(model, TagQuery)
+        and tag is not None
+        and tag.family == model.family
+        and (not model.ids or tag.id in model.ids)
+    )
 
 
 @dataclass(eq=False)
@@ -175,7 +191,13 @@ class _Model:
         return f'{self.where}.{self.role} ({self.algorithm})'
 
 
-def model_checks(models: dict, crew: list, fleet: bool, statics, humans) -> list[_Model]:
+def model_checks(
+    models: dict[str, tuple[str, object]],
+    crew: Sequence[CrewEntry],
+    fleet: bool,
+    statics: list[Labelled],
+    humans: list[Labelled],
+) -> list[_Model]:
     """Each colour model with the bodies it is meant to find: the shared ones (``models``) those of
     their role, each robot's own ``self`` and ``station`` its body and its station."""
     robots = [robot for _, robot, _, _ in crew if robot is not None]
@@ -200,7 +222,12 @@ def model_checks(models: dict, crew: list, fleet: bool, statics, humans) -> list
     return checks
 
 
-def check_models(report: Report, models: list[_Model], floor_colour, bodies) -> None:
+def check_models(
+    report: Report,
+    models: list[_Model],
+    floor_colour: tuple[int, int, int] | None,
+    bodies: Sequence[Labelled],
+) -> None:
     """No colour model matches the floor; each model finds the bodies it is meant for and no other
     body (of ``bodies``, all of them). Only ``colour`` and ``apriltag`` models of the known roles say
     what they find (``motion`` and plugins are not checked); decoys are left out. The robot plans
@@ -238,6 +265,7 @@ def check_models(report: Report, models: list[_Model], floor_colour, bodies) -> 
                 )
             elif body.tag is None:
                 query = model.params
+                assert isinstance(query, TagQuery)  # key 'tag'
                 wanted = query.family + (f' (id {", ".join(map(str, query.ids))})' if query.ids else '')
                 message = f'missing: {model.name} looks for a {wanted} tag: {_MISSED[role]}'
             else:
@@ -250,7 +278,7 @@ def check_models(report: Report, models: list[_Model], floor_colour, bodies) -> 
         for label, body in bodies:
             if id(body) in allowed or body.decoy or not _finds(model.params, body):
                 continue
-            found = list(body.colour) if key == 'colour' else body.tag.label
+            found = list(body.colour) if key == 'colour' or body.tag is None else body.tag.label
             remedy = (
                 'change the colour or narrow the model' if key == 'colour' else 'list its ids in the model'
             )
@@ -261,12 +289,12 @@ def check_models(report: Report, models: list[_Model], floor_colour, bodies) -> 
             report.add(label, key, message)
 
 
-def _flat(colour) -> Body:
+def _flat(colour: tuple[int, int, int]) -> Body:
     """A body of one flat colour, for :func:`_finds`."""
     return Body('', (0.0, 0.0), (1.0, 1.0, 1.0), colour)
 
 
-def check_views(report: Report, cameras, floor) -> None:
+def check_views(report: Report, cameras: Iterable[tuple[str, Camera]], floor: tuple[float, float]) -> None:
     """Each camera sees some of the floor, from its position and from each waypoint of its mount."""
     for label, camera in cameras:
         forward = np.subtract(camera.target, camera.position)
@@ -295,7 +323,7 @@ def check_views(report: Report, cameras, floor) -> None:
                 report.add(label, key, message)
 
 
-def check_names(report: Report, bodies, cameras) -> None:
+def check_names(report: Report, bodies: Sequence[Labelled], cameras: Iterable[tuple[str, Camera]]) -> None:
     """Body names are unique (objects may not take ``robot`` or ``station``); vision system names
     too, and none is a robot's (both are node names)."""
     seen: dict[str, str] = {}
@@ -320,7 +348,7 @@ def check_names(report: Report, bodies, cameras) -> None:
         names.add(camera.name)
 
 
-def check_tags(report: Report, bodies) -> None:
+def check_tags(report: Report, bodies: Iterable[Labelled]) -> None:
     """Each tag (family and id) is on one body only; the later one in the file is named."""
     seen: dict[str, str] = {}
     for label, body in bodies:

@@ -9,12 +9,14 @@ docs/tutorials/your-camera.md; how tags are located: docs/design.md ("Vision sys
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
+from numpy.typing import ArrayLike
 
 MIN_POINTS = 4
 TAG_FAMILY = 'tag36h11'
@@ -74,7 +76,8 @@ def parse_tag(text: str) -> TagSpec:
         raise CalibrationError(f'{text!r}: expected {what}, e.g. 3:1.5,2.0')
     if int(tag_id) >= TAG_IDS:
         raise CalibrationError(f'{text!r}: tag36h11 ids are 0 to {TAG_IDS - 1}')
-    return TagSpec(int(tag_id), _numbers(floor, 2, what, '3:1.5,2.0', text))
+    x, y = _numbers(floor, 2, what, '3:1.5,2.0', text)
+    return TagSpec(int(tag_id), (x, y))
 
 
 def parse_point(text: str, index: int = 1) -> FloorPoint:
@@ -87,7 +90,8 @@ def parse_point(text: str, index: int = 1) -> FloorPoint:
     pixel, _, floor = text.partition(':')
     example = '412.5,300:1.0,2.0'
     u, v = _numbers(pixel, 2, what, example, text)
-    return FloorPoint(f'point {index}', (u, v), _numbers(floor, 2, what, example, text))
+    x, y = _numbers(floor, 2, what, example, text)
+    return FloorPoint(f'point {index}', (u, v), (x, y))
 
 
 def parse_distortion(text: str) -> tuple[float, ...]:
@@ -108,7 +112,9 @@ class Intrinsics:
     frame_id: str = ''
 
     @classmethod
-    def from_values(cls, fx: float, fy: float, cx: float, cy: float, distortion=()) -> Intrinsics:
+    def from_values(
+        cls, fx: float, fy: float, cx: float, cy: float, distortion: Iterable[float] = ()
+    ) -> Intrinsics:
         for name, value in (('fx', fx), ('fy', fy)):
             if not (math.isfinite(value) and value > 0):
                 raise CalibrationError(f'--{name} {value}: a focal length in pixels must be positive')
@@ -119,7 +125,14 @@ class Intrinsics:
 
     @classmethod
     def from_matrix(
-        cls, source: str, K, D=(), model: str = 'plumb_bob', width: int = 0, height: int = 0, frame_id=''
+        cls,
+        source: str,
+        K: ArrayLike,
+        D: Iterable[float] = (),
+        model: str = 'plumb_bob',
+        width: int = 0,
+        height: int = 0,
+        frame_id: str = '',
     ) -> Intrinsics:
         """Checked intrinsics from a CameraInfo or its YAML file (``source`` names it in errors)."""
         K = np.asarray(K, float).reshape(3, 3)
@@ -173,7 +186,7 @@ def read_camera_info_yaml(path: str | Path) -> Intrinsics:
     except yaml.YAMLError as error:
         raise CalibrationError(f'--camera-info {path}: not YAML: {str(error).splitlines()[0]}') from None
 
-    def entry(key: str, count=None) -> list[float]:
+    def entry(key: str, count: int | None = None) -> list[float]:
         value = data.get(key) if isinstance(data, dict) else None
         numbers = value.get('data') if isinstance(value, dict) else None
         if (
@@ -208,7 +221,7 @@ class TagSighting:
     centre: np.ndarray
 
 
-def _undistort(points, intrinsics: Intrinsics) -> np.ndarray:
+def _undistort(points: ArrayLike, intrinsics: Intrinsics) -> np.ndarray:
     """Pixels of the distorted image -> pixels of the ideal pinhole camera with the same ``K``."""
     points = np.asarray(points, float).reshape(-1, 1, 2)
     if intrinsics.distortion is None:
@@ -218,7 +231,7 @@ def _undistort(points, intrinsics: Intrinsics) -> np.ndarray:
     return ideal.reshape(-1, 2)
 
 
-def _distort(points, intrinsics: Intrinsics) -> np.ndarray:
+def _distort(points: ArrayLike, intrinsics: Intrinsics) -> np.ndarray:
     """The inverse of :func:`_undistort`."""
     points = np.asarray(points, float).reshape(-1, 2)
     if intrinsics.distortion is None:
@@ -228,16 +241,16 @@ def _distort(points, intrinsics: Intrinsics) -> np.ndarray:
     return pixels.reshape(-1, 2)
 
 
-def _line_through(a, b) -> np.ndarray:
+def _line_through(a: Sequence[float], b: Sequence[float]) -> np.ndarray:
     return np.cross([a[0], a[1], 1.0], [b[0], b[1], 1.0])
 
 
-def _meet(line_a, line_b) -> np.ndarray:
+def _meet(line_a: np.ndarray, line_b: np.ndarray) -> np.ndarray:
     point = np.cross(line_a, line_b)
     return point[:2] / point[2]
 
 
-def tag_centre(corners, intrinsics: Intrinsics) -> np.ndarray:
+def tag_centre(corners: ArrayLike, intrinsics: Intrinsics) -> np.ndarray:
     """The pixel of a tag's centre: where the diagonals of its 4 corners cross (in the ideal image).
 
     >>> K = Intrinsics.from_values(500, 500, 400, 300)
@@ -253,7 +266,7 @@ EDGE_SAMPLES = 24
 """Profiles across each edge of a tag's black square, for the line fit."""
 
 
-def refine_tag_corners(gray: np.ndarray, corners, intrinsics: Intrinsics) -> np.ndarray:
+def refine_tag_corners(gray: np.ndarray, corners: ArrayLike, intrinsics: Intrinsics) -> np.ndarray:
     """The corners of a tag's black square, as the crossings of lines fitted to its 4 outer edges.
 
     Each edge is sampled across at :data:`EDGE_SAMPLES` places over its middle three
@@ -353,7 +366,8 @@ def tag_points(tags: list[TagSpec], seen: dict[int, list[TagSighting]]) -> list[
                 f'tag {tag.id} is seen {len(sightings)} times in the image: '
                 'each tag id must be on the floor once'
             )
-        points.append(FloorPoint(f'tag {tag.id}', tuple(map(float, sightings[0].centre)), tag.floor))
+        u, v = sightings[0].centre
+        points.append(FloorPoint(f'tag {tag.id}', (float(u), float(v)), tag.floor))
     return points
 
 
@@ -543,7 +557,7 @@ def _round(value: float, digits: int) -> float:
     return 0.0 if value == 0 else value
 
 
-def _number(value) -> str:
+def _number(value: float) -> str:
     """A YAML number that reads back as the same int or float (PyYAML wants a '.' in floats)."""
     if isinstance(value, int):
         return str(value)
@@ -551,7 +565,7 @@ def _number(value) -> str:
     return text + '0' if text.endswith('.') else text
 
 
-def quaternion_from_matrix(rotation) -> tuple[float, float, float, float]:
+def quaternion_from_matrix(rotation: ArrayLike) -> tuple[float, float, float, float]:
     """(x, y, z, w) of a rotation matrix, w >= 0.
 
     >>> [round(q, 6) for q in quaternion_from_matrix([[0, -1, 0], [1, 0, 0], [0, 0, 1]])]
@@ -574,17 +588,26 @@ def quaternion_from_matrix(rotation) -> tuple[float, float, float, float]:
     else:
         s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2.0
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4.0, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q) / np.linalg.norm(q)
-    if q[3] < 0:
-        q = -q
-    return tuple(float(v) + 0.0 for v in q)
+    unit = np.array(q) / np.linalg.norm(q)
+    if unit[3] < 0:
+        unit = -unit
+    x, y, z, w = (float(v) + 0.0 for v in unit)
+    return x, y, z, w
 
 
-def _object_points(points) -> np.ndarray:
+def _object_points(points: Sequence[FloorPoint]) -> np.ndarray:
     return np.array([[*p.floor, 0.0] for p in points], float).reshape(-1, 1, 3)
 
 
-def _pose(points, intrinsics, rvec, tvec, width, height, notes=()) -> Calibration:
+def _pose(
+    points: Sequence[FloorPoint],
+    intrinsics: Intrinsics,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    width: int,
+    height: int,
+    notes: Iterable[str] = (),
+) -> Calibration:
     camera_from_map = cv2.Rodrigues(rvec)[0]
     reprojected, _ = cv2.projectPoints(
         _object_points(points), rvec, tvec, intrinsics.K, intrinsics.distortion

@@ -18,13 +18,41 @@ so its centre is (c + 0.5, r + 0.5). Depth is the distance along the optical axi
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 DEFAULT_NEAR = 0.05
 DEFAULT_FAR = 100.0
+
+
+class CameraConfig(Protocol):
+    """What :meth:`PinholeCamera.from_config` reads of a camera's configuration (a world file's
+    :class:`drvs.sim.world.Camera` has it)."""
+
+    @property
+    def position(self) -> Sequence[float]: ...
+
+    @property
+    def target(self) -> Sequence[float]: ...
+
+    @property
+    def up(self) -> Sequence[float]: ...
+
+    @property
+    def fov_deg(self) -> float: ...
+
+    @property
+    def resolution(self) -> tuple[int, int]: ...
+
+
+def _vector3(values: Sequence[float]) -> tuple[float, float, float]:
+    x, y, z = values
+    return x, y, z
 
 
 @dataclass(frozen=True)
@@ -44,16 +72,16 @@ class PinholeCamera:
     far: float = DEFAULT_FAR
 
     @classmethod
-    def from_config(cls, camera, resolution: tuple[int, int] | None = None) -> PinholeCamera:
+    def from_config(cls, camera: CameraConfig, resolution: tuple[int, int] | None = None) -> PinholeCamera:
         """The model of a world file's ``vision_systems`` entry (:class:`drvs.sim.world.Camera`)."""
         width, height = resolution or camera.resolution
         return cls(
-            eye=tuple(camera.position),
-            target=tuple(camera.target),
+            eye=_vector3(camera.position),
+            target=_vector3(camera.target),
             fov_deg=camera.fov_deg,
             width=int(width),
             height=int(height),
-            up=tuple(camera.up),
+            up=_vector3(camera.up),
         )
 
     def moved_to(self, x: float, y: float) -> PinholeCamera:
@@ -98,7 +126,7 @@ class PinholeCamera:
         return axes
 
     # -- projections ---------------------------------------------------------------------------
-    def project_3d_to_pixel(self, points) -> np.ndarray:
+    def project_3d_to_pixel(self, points: ArrayLike) -> np.ndarray:
         """(u, v) of 3D point(s) in ``map``: shape (2,) for one point, (N, 2) for (N, 3).
 
         Points behind the camera have no image: their (u, v) are NaN.
@@ -116,7 +144,7 @@ class PinholeCamera:
         pixels[depth <= 0] = np.nan
         return pixels[0] if single else pixels
 
-    def _directions(self, pixels) -> tuple[np.ndarray, bool]:
+    def _directions(self, pixels: ArrayLike) -> tuple[np.ndarray, bool]:
         """Ray directions scaled so their component along the optical axis is 1."""
         pixels = np.asarray(pixels, float)
         single = pixels.ndim == 1
@@ -128,19 +156,19 @@ class PinholeCamera:
         directions = forward[None, :] + np.outer(x_ndc * t * self.aspect, right) + np.outer(y_ndc * t, up)
         return directions, single
 
-    def project_pixel_to_3d_ray(self, pixels) -> np.ndarray:
+    def project_pixel_to_3d_ray(self, pixels: ArrayLike) -> np.ndarray:
         """Unit direction(s) in ``map`` of the ray(s) from ``eye`` through pixel position(s) (u, v)."""
         directions, single = self._directions(pixels)
         directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         return directions[0] if single else directions
 
-    def pixel_to_point(self, pixels, depth) -> np.ndarray:
+    def pixel_to_point(self, pixels: ArrayLike, depth: ArrayLike) -> np.ndarray:
         """3D point(s) seen at pixel position(s) (u, v) at ``depth`` metres along the optical axis."""
         directions, single = self._directions(pixels)
         points = np.asarray(self.eye, float)[None, :] + directions * np.reshape(depth, (-1, 1))
         return points[0] if single else points
 
-    def pixel_to_floor(self, pixels, z: float = 0.0) -> np.ndarray:
+    def pixel_to_floor(self, pixels: ArrayLike, z: float = 0.0) -> np.ndarray:
         """Where the ray(s) through (u, v) meet the horizontal plane at height ``z`` (NaN if never)."""
         directions, single = self._directions(pixels)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -174,7 +202,7 @@ class PinholeCamera:
         # the image (direction is affine in (u, v)), so clip the image rectangle by it.
         limit = height / self.far
         values = [-d[2] - limit for d in directions]
-        kept = []
+        kept: list[tuple[float, ...]] = []
         for i, corner in enumerate(corners):
             j = (i + 1) % len(corners)
             a, b = values[i], values[j]
@@ -193,4 +221,4 @@ class PinholeCamera:
             shape = shape.intersection(box(0.0, 0.0, floor_size[0], floor_size[1]))
         if shape.is_empty or shape.area <= 0 or shape.geom_type != 'Polygon':
             return []
-        return [tuple(map(float, p)) for p in orient(shape, sign=1.0).exterior.coords[:-1]]
+        return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]

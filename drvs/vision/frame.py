@@ -7,10 +7,15 @@ topic (:mod:`drvs.ros.frame_sources`) — and the pipeline (:mod:`drvs.vision.pi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drvs.vision.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from drvs.vision.optics import CameraModel
 
 
 @dataclass(frozen=True)
@@ -23,10 +28,10 @@ class Frame:
 
     rgb: np.ndarray
     depth: np.ndarray | None
-    camera: PinholeCamera
+    camera: PinholeCamera | CameraModel
     stamp: float
     sample_offset: tuple[float, float] = (0.0, 0.0)
 
-    def to_camera(self, pixels) -> np.ndarray:
+    def to_camera(self, pixels: ArrayLike) -> np.ndarray:
         """Array-pixel (u, v) positions -> the camera model's (u, v)."""
         return np.asarray(pixels, float) + np.asarray(self.sample_offset)

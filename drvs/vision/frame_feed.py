@@ -23,6 +23,10 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from drvs.vision.frame import Frame
 
 
 class FrameTimeout(RuntimeError):
@@ -44,11 +48,11 @@ class FrameFeed:
         self.stale_after = stale_after
         self.clock = clock
         self.received = 0
-        self._frame = None
+        self._frame: Frame | None = None
         self._received_at = -math.inf
         self._changed = threading.Condition()
 
-    def put(self, frame) -> None:
+    def put(self, frame: Frame) -> None:
         """A new frame arrived: it replaces the previous one and wakes the waiting requests."""
         with self._changed:
             self._frame = frame
@@ -56,12 +60,12 @@ class FrameFeed:
             self.received += 1
             self._changed.notify_all()
 
-    def newest(self):
+    def newest(self) -> Frame | None:
         """The newest frame, whatever its age (None before the first)."""
         with self._changed:
             return self._frame
 
-    def get(self):
+    def get(self) -> Frame:
         """A frame for a request made now: the newest if it is younger than ``max_age``, else the
         next one to arrive. Raises :class:`FrameTimeout` after ``timeout`` seconds without one."""
         with self._changed:
@@ -75,6 +79,7 @@ class FrameFeed:
                 raise FrameTimeout(
                     f'no new frame within {self.timeout:g} s (the last one arrived {age:.1f} s ago)'
                 )
+            assert self._frame is not None  # a frame was put
             return self._frame
 
     def stale(self) -> bool:

@@ -18,11 +18,17 @@ docs/interface.md ("Units and frames"); why undistortion iterates: docs/design.m
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drvs.vision.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from shapely.geometry import Polygon
 
 OPENCV_OFFSET = 0.5
 """DRVS corner coordinates minus this are OpenCV / ROS pixel coordinates."""
@@ -78,13 +84,13 @@ def optical_pose_of(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([right, -up, forward]), np.asarray(camera.eye, float)
 
 
-def _frozen(array) -> np.ndarray:
+def _frozen(array: ArrayLike) -> np.ndarray:
     array = np.array(array, dtype=float)  # a private copy
     array.setflags(write=False)
     return array
 
 
-def _batch(values, width: int, what: str) -> tuple[np.ndarray, bool]:
+def _batch(values: ArrayLike, width: int, what: str) -> tuple[np.ndarray, bool]:
     """``values`` as an (N, width) float array, and whether a single (width,) row was given."""
     array = np.asarray(values, float)
     single = array.ndim == 1
@@ -117,7 +123,7 @@ class CameraModel:
     rotation: np.ndarray
     translation: np.ndarray
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         K = _frozen(self.K)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f'CameraModel: K: expected a finite 3x3 matrix with fx, fy > 0, got {self.K!r}')
@@ -169,14 +175,15 @@ class CameraModel:
     @property
     def eye(self) -> tuple[float, float, float]:
         """The optical centre in ``map``."""
-        return tuple(float(c) for c in self.translation)
+        x, y, z = (float(c) for c in self.translation)
+        return x, y, z
 
     @property
     def distorted(self) -> bool:
         """Whether the lens distorts (any non-zero coefficient)."""
         return any(self.D)
 
-    def with_pose(self, rotation, translation) -> CameraModel:
+    def with_pose(self, rotation: np.ndarray, translation: np.ndarray) -> CameraModel:
         """The same camera with its optical frame at (``rotation``, ``translation``) in ``map``."""
         return replace(self, rotation=rotation, translation=translation)
 
@@ -250,7 +257,7 @@ class CameraModel:
         x[~(error <= UNDISTORT_TOLERANCE)] = np.nan
         return x
 
-    def undistort(self, pixels) -> np.ndarray:
+    def undistort(self, pixels: ArrayLike) -> np.ndarray:
         """Normalized image coordinates (x/z, y/z) in the optical frame of pixel position(s) (u, v).
 
         Shape (2,) for one pixel, (N, 2) for (N, 2). Each result distorts back to within
@@ -280,7 +287,7 @@ class CameraModel:
         return normalized[0] if single else normalized
 
     # -- rays ----------------------------------------------------------------------------------
-    def _directions(self, pixels) -> tuple[np.ndarray, bool]:
+    def _directions(self, pixels: ArrayLike) -> tuple[np.ndarray, bool]:
         """Ray directions in ``map`` scaled so their component along the optical axis is 1."""
         normalized = self.undistort(pixels)
         single = normalized.ndim == 1
@@ -288,20 +295,20 @@ class CameraModel:
         optical = np.c_[normalized, np.ones(len(normalized))]
         return optical @ self.rotation.T, single
 
-    def project_pixel_to_3d_ray(self, pixels) -> np.ndarray:
+    def project_pixel_to_3d_ray(self, pixels: ArrayLike) -> np.ndarray:
         """Unit direction(s) in ``map`` of the ray(s) from the optical centre through pixel(s) (u, v)."""
         directions, single = self._directions(pixels)
         directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         return directions[0] if single else directions
 
-    def pixel_to_point(self, pixels, depth) -> np.ndarray:
+    def pixel_to_point(self, pixels: ArrayLike, depth: ArrayLike) -> np.ndarray:
         """3D point(s) in ``map`` seen at pixel(s) (u, v) at ``depth`` metres along the optical z axis
         (a ROS depth image's value, REP-118)."""
         directions, single = self._directions(pixels)
         points = self.translation[None, :] + directions * np.reshape(np.asarray(depth, float), (-1, 1))
         return points[0] if single else points
 
-    def pixel_to_floor(self, pixels, z: float = 0.0) -> np.ndarray:
+    def pixel_to_floor(self, pixels: ArrayLike, z: float = 0.0) -> np.ndarray:
         """Where the ray(s) through (u, v) meet the horizontal plane at height ``z`` (NaN if never)."""
         directions, single = self._directions(pixels)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -310,7 +317,7 @@ class CameraModel:
         points = self.translation[None, :] + directions * scale[:, None]
         return points[0] if single else points
 
-    def project_3d_to_pixel(self, points) -> np.ndarray:
+    def project_3d_to_pixel(self, points: ArrayLike) -> np.ndarray:
         """(u, v) of 3D point(s) in ``map``, through the lens: shape (2,) for one point, (N, 2) for (N, 3).
 
         Points behind the camera (or in its optical centre's plane) have no image: NaN.
@@ -406,7 +413,7 @@ class CameraModel:
         return [(float(x), float(y)) for x, y in orient(shape, sign=1.0).exterior.coords[:-1]]
 
 
-def _half_plane(bounds, a: float, b: float, c: float):
+def _half_plane(bounds: Sequence[float], a: float, b: float, c: float) -> Polygon | None:
     """The part of the rectangle ``bounds`` (grown a little) where a*x + b*y + c <= 0, or None."""
     from shapely.geometry import Polygon
 
@@ -419,7 +426,7 @@ def _half_plane(bounds, a: float, b: float, c: float):
         (min_x - margin, max_y + margin),
     ]
     values = [a * x + b * y + c for x, y in corners]
-    kept = []
+    kept: list[tuple[float, ...]] = []
     for i, corner in enumerate(corners):
         j = (i + 1) % len(corners)
         if values[i] <= 0:

@@ -18,8 +18,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from shapely.geometry import Polygon, box
+from shapely.geometry.base import BaseGeometry
 
-from drvs.algorithms import PixelObject
+from drvs.algorithms import Parsed, PixelObject
 from drvs.vision.frame import Frame
 
 log = logging.getLogger('rosout.' + __name__)
@@ -53,6 +54,8 @@ def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
     them is used (searching a little further out for a vertex on a thin spike).
     """
     depth = frame.depth
+    if depth is None:
+        raise ValueError('vertex_depths: the frame has no depth image')
     height, width = depth.shape
     contour = outline.astype(np.float32).reshape(-1, 1, 2)
     # The 2 x 2 pixels around every vertex at once (radius 1), with holes (0, NaN) left out.
@@ -123,7 +126,7 @@ def project_outline(frame: Frame, pixel_object: PixelObject) -> list[Polygon]:
     return _polygons(shape)
 
 
-def _polygons(shape) -> list[Polygon]:
+def _polygons(shape: BaseGeometry) -> list[Polygon]:
     if shape.is_empty:
         return []
     if shape.geom_type == 'Polygon':
@@ -145,7 +148,7 @@ def ring(shape: Polygon) -> Outline:
     return coords[:-1]
 
 
-def on_floor(frame: Frame, algorithm) -> list[FloorObject]:
+def on_floor(frame: Frame, algorithm: Parsed) -> list[FloorObject]:
     """Every object ``algorithm`` (a :class:`drvs.algorithms.Parsed`) finds in ``frame``, on the
     floor. Whatever the region asked for, so that
     several requests with one algorithm on one frame detect once (:func:`in_region` clips).
@@ -203,7 +206,7 @@ def in_region(
 
 
 def locate_labelled(
-    frame: Frame, algorithm, region_of_interest: tuple[float, float, float, float]
+    frame: Frame, algorithm: Parsed, region_of_interest: tuple[float, float, float, float]
 ) -> list[tuple[Outline, str]]:
     """(outline, label) on the floor (``map``, counter-clockwise) of each object ``algorithm``
     (a :class:`drvs.algorithms.Parsed`) finds in ``frame`` that intersects
@@ -212,13 +215,15 @@ def locate_labelled(
 
 
 def locate_objects(
-    frame: Frame, algorithm, region_of_interest: tuple[float, float, float, float]
+    frame: Frame, algorithm: Parsed, region_of_interest: tuple[float, float, float, float]
 ) -> list[Outline]:
     """The outlines of :func:`locate_labelled`, without labels."""
     return [outline for outline, _ in locate_labelled(frame, algorithm, region_of_interest)]
 
 
-def draw_detections(frame: Frame, outlines: list[Outline], colour=(255, 0, 255)) -> np.ndarray:
+def draw_detections(
+    frame: Frame, outlines: list[Outline], colour: tuple[int, int, int] = (255, 0, 255)
+) -> np.ndarray:
     """A copy of the frame's RGB with floor outlines drawn where they lie on the floor."""
     image = frame.rgb.copy()
     for outline in outlines:

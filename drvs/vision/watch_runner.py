@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from drvs.algorithms import AlgorithmSet, Parsed
 from drvs.common.status import BUSY, Refusal
 from drvs.common.validation import global_ros_name, request_fields, watch_terms
 
@@ -48,7 +49,7 @@ class Terms:
 
     callback_service: str
     request_id: str
-    algorithm: object  # a drvs.algorithms.Parsed (its .text is the request's algorithm string)
+    algorithm: Parsed  # its .text is the request's algorithm string
     region: Box
     period: float  # seconds between evaluations (the granted one, once standing)
     changes_only: bool
@@ -84,7 +85,7 @@ def parse_watch(
     period: float,
     duration: float,
     changes_only: bool,
-    algorithms=None,
+    algorithms: AlgorithmSet | None = None,
 ) -> Terms | None:
     """Check a WatchObjectBoundary request; its terms, or None for a cancel (``duration`` 0).
 
