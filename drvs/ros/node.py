@@ -36,17 +36,18 @@ class NodeScaffold:
       :meth:`every` start loops under it.
     - :attr:`counters`: the node's ``~stats`` counters under their lock; :attr:`refusals`:
       refusals by status name, for the health report.
-    - :attr:`diagnostics`: ``/diagnostics`` once a second from ``health()``.
+    - :attr:`diagnostics`: ``/diagnostics`` once a second from ``health()`` (None without it).
     - :meth:`log_throttled`: at most one line per kind and :data:`LOG_PERIOD`.
 
-    :param health: the node's health now (called on the diagnostics thread).
+    :param health: the node's health now (called on the diagnostics thread); None for a node
+        that publishes no diagnostics (the scenario recorder, which is no part of DRVS).
     :param counters: the names of the node's counters.
     :param hardware_id: what the diagnostics status is about (default: the host name).
     """
 
     def __init__(
         self,
-        health: Callable[[], Health],
+        health: Callable[[], Health] | None,
         counters: tuple[str, ...] | list[str] = (),
         hardware_id: str | None = None,
         log_period: float = LOG_PERIOD,
@@ -57,19 +58,23 @@ class NodeScaffold:
         self.refusals = PeriodCounts()
         self.log_period = log_period
         self._log_throttle = LogThrottle(log_period)
-        self.diagnostics = DiagnosticsPublisher(
-            f'drvs: {rospy.get_name()}', hardware_id or socket.gethostname(), health, guard=self.guard
-        )
+        self.diagnostics = None
+        if health is not None:
+            self.diagnostics = DiagnosticsPublisher(
+                f'drvs: {rospy.get_name()}', hardware_id or socket.gethostname(), health, guard=self.guard
+            )
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
         """Start publishing diagnostics (the node's own loops are spawned by the node)."""
-        self.diagnostics.start()
+        if self.diagnostics is not None:
+            self.diagnostics.start()
 
     def stop(self, join: float | None = None) -> None:
         """Set :attr:`stopping`, stop diagnostics and, with ``join``, wait that long for each loop."""
         self.stopping.set()
-        self.diagnostics.stop()
+        if self.diagnostics is not None:
+            self.diagnostics.stop()
         if join is not None:
             self.join(join)
 

@@ -1,32 +1,9 @@
-"""The scenario recorder: watches a run and leaves its picture, summary and figures.
+"""The scenario recorder node: watches a run and leaves its picture, summary and figures.
 
-It is the scenario's observer, not part of DRVS. :class:`RunRecorder` turns the
-messages of a run — ground truth from world_sim, every robot's status, plans and
-map, the server's registry and counters, every vision system's counters and the
-recorder's own samples (drvs/RecorderSample) — into a :class:`drvs.sim.report.RunRecord`.
-It is fed either live, by the subscriptions of :class:`RecorderNode`, or from a
-bag in recorded order (:mod:`drvs.tools.bag_report`, ``drvs_report``): the same
-messages give the same summary. Nothing in it reads a clock or /proc: a robot's
-elapsed time counts in ROS time (simulated under ``/use_sim_time``) from the run's
-first status, of any robot, to that robot's newest status up to its arrival or
-failure; what only the live node can know (the per-node CPU use it samples from
-/proc, the first status it received, the wall-clock seconds the run took, the
-world file, where it stopped) reaches it, and a bag, as a drvs/RecorderSample.
-
-:class:`RecorderNode` is the live node: it samples each node's CPU use and
-publishes it latched on ``~samples``, keeps a one-line progress report in
-``~out/status.line`` (``run_scenario.sh`` shows it), and on shutdown publishes
-a final sample and writes ``~out/summary.json``, ``~out/trace.json`` (trajectories,
-plans, re-plan points, humans' paths) and ``~out/run.png`` (:func:`drvs.sim.report.write_report`).
-
-Parameters: :class:`RecorderSettings` (the README's table is generated from it).
-
-Topics read: ``/world_sim/ground_truth`` (JSON: each robot under ``robots``; a bag from
-before fleets has the one robot under ``robot``), for every robot NAME of the world
-``/NAME/status`` (drvs/RobotStatus), ``/NAME/path`` and ``/NAME/map``; ``/drvs/registry``
-(drvs/Registry), ``/drvs/stats`` (drvs/ServerStats), ``/<camera>/stats``
-(drvs/VisionSystemStats) for every camera of the world. Published: ``~samples``
-(drvs/RecorderSample, latched).
+It is the scenario's observer, not part of DRVS. :class:`RunRecorder` turns a run's messages,
+fed live by :class:`RecorderNode` or from a bag (:mod:`drvs.tools.bag_report`), into a
+:class:`drvs.sim.report.RunRecord`: the same messages give the same summary. Topics, files and
+parameters: docs/nodes/scenario_recorder.md.
 """
 
 from __future__ import annotations
@@ -51,10 +28,10 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.common.guard import RESTART, LoopGuard
 from drvs.common.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, ServerStats, VisionSystemStats
 from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
+from drvs.ros.node import NodeScaffold
 from drvs.sim.report import CAMERA_FIGURES, ROBOT_FIGURES, SERVER_FIGURES, RunRecord, write_report
 from drvs.sim.world import World
 from drvs.sim.world_file import load_world
@@ -101,7 +78,10 @@ class RunRecorder:
     Each ``on_*`` handler takes one message; they may be called from several
     threads. A final drvs/RecorderSample closes the recording: messages after it
     are ignored, so a bag, which goes on after the live recorder stopped, gives
-    what the live recorder had.
+    what the live recorder had. Nothing here reads a clock or /proc: a robot's
+    elapsed time counts in ROS time from the run's first status, of any robot, to
+    that robot's newest status up to its arrival or failure; what only the live node
+    knows (CPU use, wall-clock seconds) comes in drvs/RecorderSample messages.
     """
 
     def __init__(self, world: World):
@@ -317,8 +297,14 @@ class RecorderNode:
         self._wall_seconds = 0.0  # from the first counted status to the newest
         self._finished = False
         self.samples_pub: rospy.Publisher | None = None
-        # The sampler asks the master for every node: it fails while a master restarts; it restarts.
-        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), restart_delay=1.0)
+        # No /diagnostics: the recorder is no part of DRVS. The sampler asks the master for every
+        # node: it fails while a master restarts, and restarts.
+        self.node = NodeScaffold(None)
+
+    @property
+    def guard(self):
+        """The node's loop guard (its ``failure`` decides the exit code)."""
+        return self.node.guard
 
     @property
     def record(self) -> RunRecord:
@@ -338,8 +324,8 @@ class RecorderNode:
             if message_type is RobotStatus:
                 handler = functools.partial(self._on_status, handler=handler)
             rospy.Subscriber(topic, message_type, handler, queue_size=queue_size)
-        rospy.on_shutdown(self.finish)  # runs before rospy's shutdown flag: it can still publish
-        self.guard.spawn(self._sample_loop, 'cpu-sampler', RESTART)
+        rospy.on_shutdown(self.stop)  # runs before rospy's shutdown flag: it can still publish
+        self.node.spawn(self._sample_loop, 'cpu-sampler')
 
     def _on_status(self, msg: RobotStatus, handler: Callable[[RobotStatus], bool]) -> None:
         """A robot's status into the recorder; while it counts, the wall clock's seconds with it."""
@@ -358,7 +344,8 @@ class RecorderNode:
                 last_sample = time.monotonic()
                 self._sample_cpu()
             self._write_status_line()
-            time.sleep(min(self.cpu_period, STATUS_LINE_PERIOD))
+            if self.node.wait(min(self.cpu_period, STATUS_LINE_PERIOD)):
+                return
 
     def _node_pids(self) -> dict[str, int]:
         master = rospy.get_master()
@@ -422,6 +409,13 @@ class RecorderNode:
         tmp.replace(self.out / 'status.line')
 
     # -- the end ----------------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Finish (:meth:`finish`), then end the sampler."""
+        try:
+            self.finish()
+        finally:
+            self.node.stop()
+
     def finish(self) -> None:
         """Publish the final sample, then write summary.json, trace.json and run.png (once)."""
         with self._lock:

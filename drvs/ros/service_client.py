@@ -1,28 +1,10 @@
 """A ROS service client with a timeout on every call and a persistent connection that heals.
 
-rospy's ``ServiceProxy`` has no call timeout (ros/ros_comm#152) and a persistent
-proxy never reconnects after the far side restarts. :class:`ServiceClient`
-speaks TCPROS itself: it looks the service up on the master (XML-RPC with a
-timeout), connects a socket, exchanges the handshake headers
-(``rosgraph.network``), and sends genpy-serialised requests over that one
-connection. Every step runs against the call's deadline, so a hung or dead
-service costs at most ``timeout`` seconds and never blocks the caller forever.
-After any failure the connection is dropped and the next call builds a new one
-(looking the service up again, since its provider may have moved).
-
-A call need not hold a thread while it waits: :meth:`ServiceClient.start` sends
-the request on a connection already open and leaves the wait for the reply to a
-:class:`ReplyLoop`, one thread that polls the sockets of every call in flight
-and hands each reply (or failure: the same errors, the same deadline) to a
-callback. The DRVS server forwards this way: a thread per call in flight, each
-waking up for its reply and fighting the others for the interpreter lock, cost
-it more than the calls themselves. Sockets are non-blocking and every wait is
-one ``poll`` (a socket with a timeout would add a poll and an ioctl per
-operation, each a system call that lets go of the interpreter lock).
-
-:func:`probe_service` asks a service for its handshake header without calling it:
-the service's type, md5sum and the node that provides it (what ``rosservice
-info`` shows), which the DRVS server uses to check registrations and callbacks.
+rospy's ``ServiceProxy`` has no call timeout (ros/ros_comm#152) and a persistent proxy never
+reconnects after the far side restarts. :class:`ServiceClient` speaks TCPROS itself
+(:mod:`drvs.ros.tcpros`, every step against the call's deadline) and reconnects after any
+failure; :meth:`ServiceClient.start` sends without waiting and leaves the reply to a
+:class:`ReplyLoop`, one thread for every call in flight. Why, and what it costs: docs/design.md.
 
 >>> from drvs.srv import DetectObjectBoundary
 >>> client = ServiceClient('/vs1/detect_object_boundary', DetectObjectBoundary, timeout=2.0)
@@ -41,240 +23,44 @@ import socket
 import struct
 import threading
 import time
-import xmlrpc.client
 from collections.abc import Callable
-from dataclasses import dataclass
 
-import rosgraph
-import rosgraph.network
 import rospy
+
+from drvs.ros.tcpros import (
+    Deadline,
+    MasterUnreachable,
+    ServiceCallError,
+    ServiceInfo,
+    TimeoutTransport,
+    UnknownService,
+    connect,
+    framed,
+    handshake,
+    lookup_service,
+    probe_service,
+    recv_exactly,
+    recv_some,
+    send,
+)
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = [
+__all__ = [  # the wire steps' names too, so that callers need one import
     'MasterUnreachable',
     'ReplyLoop',
     'ServiceCallError',
     'ServiceClient',
     'ServiceInfo',
+    'TimeoutTransport',
     'UnknownService',
     'lookup_service',
     'probe_service',
 ]
 
-MAX_HEADER_BYTES = 1 << 16
 MAX_RESPONSE_BYTES = 1 << 30
 REPLY_CHUNK = 1 << 16
 """Bytes asked for by the first read of a reply (a DRVS reply is a few dozen)."""
-
-
-class ServiceCallError(Exception):
-    """A call that did not produce a response; the message says which service and what failed."""
-
-
-class MasterUnreachable(ServiceCallError):
-    """The ROS master did not answer in time (it may be restarting): a temporary condition."""
-
-
-class UnknownService(ServiceCallError):
-    """The master answered: it knows no such service."""
-
-
-@dataclass(frozen=True)
-class ServiceInfo:
-    """What a service says about itself in its handshake header."""
-
-    name: str
-    uri: str  # rosrpc://host:port
-    type: str  # e.g. drvs/DetectObjectBoundary
-    md5sum: str
-    provider: str  # caller id of the node that serves it
-
-
-class TimeoutTransport(xmlrpc.client.Transport):
-    """XML-RPC over HTTP with a socket timeout: a master that does not answer cannot hang a caller."""
-
-    def __init__(self, timeout: float):
-        super().__init__()
-        self._timeout = timeout
-
-    def make_connection(self, host):
-        connection = super().make_connection(host)
-        connection.timeout = self._timeout
-        return connection
-
-
-def _caller_id() -> str:
-    return rospy.get_caller_id()
-
-
-def lookup_service(
-    name: str, timeout: float, master_uri: str | None = None, caller_id: str | None = None
-) -> str:
-    """The ``rosrpc://`` URI of ``name`` from the master.
-
-    :raises UnknownService: the master knows no such service.
-    :raises MasterUnreachable: the master did not answer in time.
-    """
-    uri = master_uri or rosgraph.get_master_uri()
-    try:
-        with xmlrpc.client.ServerProxy(uri, transport=TimeoutTransport(max(timeout, 0.001))) as master:
-            code, message, value = master.lookupService(caller_id or _caller_id(), name)
-    except (OSError, xmlrpc.client.Error) as error:
-        raise MasterUnreachable(f'service {name}: cannot ask the master at {uri}: {error}') from None
-    if code != 1:
-        raise UnknownService(f'service {name}: unknown service (the master says: {message})')
-    return value
-
-
-def _parse_rosrpc(name: str, uri: str) -> tuple[str, int]:
-    if not uri.startswith('rosrpc://'):
-        raise ServiceCallError(f'service {name}: the master gave an invalid URI {uri!r}')
-    host, _, port = uri[len('rosrpc://') :].rstrip('/').rpartition(':')
-    try:
-        return host, int(port)
-    except ValueError:
-        raise ServiceCallError(f'service {name}: the master gave an invalid URI {uri!r}') from None
-
-
-class _Deadline:
-    def __init__(self, name: str, timeout: float):
-        self.name = name
-        self.timeout = timeout
-        self.end = time.monotonic() + timeout
-
-    def left(self) -> float:
-        left = self.end - time.monotonic()
-        if left <= 0:
-            raise ServiceCallError(f'service {self.name}: timed out after {self.timeout:g} s')
-        return left
-
-
-def _connect(name: str, uri: str, deadline: _Deadline) -> socket.socket:
-    """A connected socket to ``uri``, non-blocking (every later step waits with :func:`_wait`)."""
-    host, port = _parse_rosrpc(name, uri)
-    try:
-        sock = socket.create_connection((host, port), timeout=deadline.left())
-    except TimeoutError:
-        raise ServiceCallError(
-            f'service {name}: timed out after {deadline.timeout:g} s connecting to {uri}'
-        ) from None
-    except OSError as error:
-        raise ServiceCallError(
-            f'service {name}: cannot connect to {uri}: {error.strerror or error}'
-        ) from None
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.setblocking(False)
-    return sock
-
-
-def _wait(sock: socket.socket, event: int, deadline: _Deadline, doing: str) -> None:
-    """Wait until ``sock`` is ready for ``event`` (``select.POLLIN`` / ``POLLOUT``), or an error on it.
-
-    One ``poll`` per wait: a socket with a timeout (``settimeout``) would cost a poll and
-    an ioctl per operation, each a system call that lets go of the interpreter lock,
-    which a busy server's other threads then fight over.
-
-    :raises ServiceCallError: the deadline passed first ("timed out after T s ``doing``").
-    """
-    poller = select.poll()
-    poller.register(sock, event)
-    while True:
-        left = deadline.end - time.monotonic()
-        if left <= 0:
-            break
-        if poller.poll(math.ceil(left * 1000)):
-            return
-    raise ServiceCallError(f'service {deadline.name}: timed out after {deadline.timeout:g} s {doing}')
-
-
-def _recv_some(sock: socket.socket, count: int, deadline: _Deadline, what: str) -> bytes:
-    """At least one and at most ``count`` bytes, once they arrive."""
-    while True:
-        _wait(sock, select.POLLIN, deadline, f'waiting for the {what}')
-        try:
-            chunk = sock.recv(count)
-        except BlockingIOError:
-            continue  # a spurious wake-up
-        except OSError as error:
-            raise ServiceCallError(
-                f'service {deadline.name}: connection failed while reading the {what}: {error}'
-            ) from None
-        if not chunk:
-            raise ServiceCallError(
-                f'service {deadline.name}: connection closed by the service before the {what}'
-            )
-        return chunk
-
-
-def _recv_exactly(sock: socket.socket, count: int, deadline: _Deadline, what: str) -> bytes:
-    chunks = []
-    while count > 0:
-        chunk = _recv_some(sock, min(count, 1 << 20), deadline, what)
-        chunks.append(chunk)
-        count -= len(chunk)
-    return b''.join(chunks)
-
-
-def _framed(data: bytes) -> bytes:
-    """A message's bytes as TCPROS sends them: their length first."""
-    return struct.pack('<I', len(data)) + data
-
-
-def _send(sock: socket.socket, data: bytes, deadline: _Deadline, what: str) -> None:
-    view = memoryview(data)
-    while view:
-        try:
-            sent = sock.send(view)
-        except BlockingIOError:
-            _wait(sock, select.POLLOUT, deadline, f'sending the {what}')
-            continue
-        except OSError as error:
-            raise ServiceCallError(
-                f'service {deadline.name}: connection failed sending the {what}: {error}'
-            ) from None
-        view = view[sent:]
-
-
-def _handshake(sock: socket.socket, fields: dict[str, str], deadline: _Deadline) -> dict[str, str]:
-    _send(sock, rosgraph.network.encode_ros_handshake_header(fields), deadline, 'handshake header')
-    (size,) = struct.unpack('<I', _recv_exactly(sock, 4, deadline, 'handshake header'))
-    if size > MAX_HEADER_BYTES:
-        raise ServiceCallError(f'service {deadline.name}: handshake header of {size} bytes is too large')
-    body = _recv_exactly(sock, size, deadline, 'handshake header')
-    try:
-        header = rosgraph.network.decode_ros_handshake_header(struct.pack('<I', size) + body)
-    except (rosgraph.network.ROSHandshakeException, UnicodeDecodeError, struct.error) as error:
-        raise ServiceCallError(f'service {deadline.name}: invalid handshake header: {error}') from None
-    if 'error' in header:
-        raise ServiceCallError(
-            f'service {deadline.name}: the service refused the connection: {header["error"]}'
-        )
-    return header
-
-
-def probe_service(
-    name: str, timeout: float, master_uri: str | None = None, caller_id: str | None = None
-) -> ServiceInfo:
-    """Look ``name`` up and read its handshake header (type, md5sum, provider) without calling it.
-
-    :raises ServiceCallError: unknown service, unreachable, timed out or no valid header.
-    """
-    deadline = _Deadline(name, timeout)
-    uri = lookup_service(name, deadline.left(), master_uri, caller_id)
-    sock = _connect(name, uri, deadline)
-    try:
-        fields = {'probe': '1', 'md5sum': '*', 'callerid': caller_id or _caller_id(), 'service': name}
-        header = _handshake(sock, fields, deadline)
-    finally:
-        sock.close()
-    return ServiceInfo(
-        name=name,
-        uri=uri,
-        type=header.get('type', ''),
-        md5sum=header.get('md5sum', ''),
-        provider=header.get('callerid', ''),
-    )
 
 
 class ServiceClient:
@@ -325,7 +111,7 @@ class ServiceClient:
             service, connection refused, timed out after X s, the service's error
             message, ...). The connection is dropped; the next call reconnects.
         """
-        deadline = _Deadline(self.service, self.timeout)
+        deadline = Deadline(self.service, self.timeout)
         if not self._lock.acquire(timeout=deadline.left()):
             raise ServiceCallError(
                 f'service {self.service}: timed out after {self.timeout:g} s waiting for an earlier call'
@@ -358,18 +144,18 @@ class ServiceClient:
         poller.register(self._sock, select.POLLIN)
         return bool(poller.poll(0))
 
-    def _open(self, deadline: _Deadline) -> None:
+    def _open(self, deadline: Deadline) -> None:
         uri = lookup_service(self.service, deadline.left(), self.master_uri, self.caller_id)
-        sock = _connect(self.service, uri, deadline)
+        sock = connect(self.service, uri, deadline)
         try:
             fields = {
-                'callerid': self.caller_id or _caller_id(),
+                'callerid': self.caller_id or rospy.get_caller_id(),
                 'service': self.service,
                 'md5sum': self.service_class._md5sum,
                 'type': self.service_class._type,
                 'persistent': '1',
             }
-            header = _handshake(sock, fields, deadline)
+            header = handshake(sock, fields, deadline)
         except BaseException:
             sock.close()
             raise
@@ -377,20 +163,20 @@ class ServiceClient:
         self.header = header
         self._connections += 1
 
-    def _call(self, request, deadline: _Deadline, serialized: bytes | None = None):
+    def _call(self, request, deadline: Deadline, serialized: bytes | None = None):
         if self._sock is not None and self._stale():
             self._disconnect()
         if self._sock is None:
             self._open(deadline)
-        data = self._serialize(request) if serialized is None else _framed(serialized)
-        _send(self._sock, data, deadline, 'request')
+        data = self._serialize(request) if serialized is None else framed(serialized)
+        send(self._sock, data, deadline, 'request')
         # Usually the whole reply comes in one piece: read what is there, then the rest.
-        received = _recv_some(self._sock, REPLY_CHUNK, deadline, 'reply')
+        received = recv_some(self._sock, REPLY_CHUNK, deadline, 'reply')
         if len(received) < 5:
-            received += _recv_exactly(self._sock, 5 - len(received), deadline, 'reply')
+            received += recv_exactly(self._sock, 5 - len(received), deadline, 'reply')
         size = self._reply_size(received)
         if len(received) < 5 + size:
-            received += _recv_exactly(self._sock, 5 + size - len(received), deadline, 'reply')
+            received += recv_exactly(self._sock, 5 + size - len(received), deadline, 'reply')
         return self._response(received)
 
     def _serialize(self, request) -> bytes:
@@ -460,8 +246,8 @@ class ServiceClient:
             if self._sock is None:
                 self._lock.release()
                 return False
-            deadline = _Deadline(self.service, self.timeout)
-            data = self._serialize(request) if serialized is None else _framed(serialized)
+            deadline = Deadline(self.service, self.timeout)
+            data = self._serialize(request) if serialized is None else framed(serialized)
             sent = self._sock.send(data)
         except (ServiceCallError, OSError):  # nothing went out (or a part: the connection is unusable)
             self._disconnect()
@@ -483,7 +269,7 @@ class _InFlight:
 
     __slots__ = ('client', 'sock', 'unsent', 'received', 'deadline', 'done', 'over')
 
-    def __init__(self, client: ServiceClient, unsent: memoryview, deadline: _Deadline, done):
+    def __init__(self, client: ServiceClient, unsent: memoryview, deadline: Deadline, done):
         self.client = client
         self.sock = client._sock
         self.unsent = unsent
@@ -544,7 +330,9 @@ class ReplyLoop:
 
     It polls their sockets (and one of its own, to hear of new calls), reads each reply
     as it comes, fails a call whose deadline passed, and runs each call's callback on its
-    thread: callbacks should be short and must not wait for a call this loop carries.
+    thread: callbacks should be short and must not wait for a call this loop carries. (A
+    thread per call in flight, each waking for its reply and fighting the others for the
+    interpreter lock, cost the DRVS server more than the calls themselves.)
     """
 
     def __init__(self, name: str = 'service-replies'):

@@ -1,2 +1,3 @@
-"""The DRVS server's decisions: the registry and its spatial index, dispatch, rate limits, the watch
-table, callback checks and log throttling. No rospy; see docs/architecture.md."""
+"""The DRVS server's decisions: the registry and its spatial index, who may register, dispatch, rate
+limits, the watch table, request and callback checks, its answers and its settings. No rospy; see
+docs/architecture.md."""

@@ -7,7 +7,7 @@ import doctest
 import pytest
 from test_server import CALLBACK, COLOUR, square
 
-import drvs.ros.server
+import drvs.ros.server_forwarding
 from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceClient
@@ -53,7 +53,7 @@ def outcome(answer):
 
 
 def test_doctests():
-    assert doctest.testmod(drvs.ros.server).failed == 0
+    assert doctest.testmod(drvs.ros.server_forwarding).failed == 0  # watch_service_of
 
 
 def test_a_watch_reaches_both_kinds_of_vision_system_follows_them_and_expires(ros, make_graph, watcher):

@@ -80,3 +80,11 @@ def test_an_internal_error_is_unavailable_and_names_the_error(monkeypatch):
         "internal error in the DRVS server (KeyError: 'x'); it is logged there; retry later"
     )
     assert logged and 'Traceback' in logged[0][2]
+
+
+def test_a_node_without_health_publishes_no_diagnostics():
+    node = NodeScaffold(None)
+    assert node.diagnostics is None
+    node.start()
+    node.stop()
+    assert node.stopped

@@ -1,0 +1,79 @@
+"""The DRVS server's settings: every parameter with its default, meaning, unit and range.
+
+Read from the node's private parameters (``~lease``, ...) by :func:`drvs.ros.params.read_params`;
+docs/nodes/drvs_server.md's parameter table is generated from these declarations. No ROS here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from drvs.common.settings import NON_NEGATIVE, POSITIVE, ParamError, Settings, at_least, param
+
+__all__ = ['ServerSettings']
+
+
+@dataclass(frozen=True)
+class ServerSettings(Settings):
+    lease: float = param(
+        10.0, 'a registration expires unless renewed within this time', unit='s', check=POSITIVE
+    )
+    max_failures: int = param(
+        3,
+        'failed forwards in a row that remove (and eject) a vision system; renewals do not reset it',
+        check=at_least(1),
+    )
+    ejection_time: float = param(
+        10.0, 'an ejected vision system is refused this long × its ejections', unit='s', check=NON_NEGATIVE
+    )
+    max_ejection_time: float = param(
+        300.0, 'the longest ejection; at least `~ejection_time`', unit='s', check=NON_NEGATIVE
+    )
+    forward_timeout: float = param(
+        2.0, 'limit on one forward (connect, send, reply)', unit='s', check=POSITIVE
+    )
+    workers: int = param(8, 'forwarding threads (a hung vision system holds at most one)', check=at_least(1))
+    max_pending: int = param(
+        1000, 'forwards queued or running; beyond it requests are refused `BUSY`', check=at_least(1)
+    )
+    max_pending_per_vision_system: int = param(
+        10, 'a vision system this far behind is skipped by new requests', check=at_least(1)
+    )
+    busy_retry_after: float = param(0.5, '`retry_after` of a `BUSY` refusal', unit='s', check=POSITIVE)
+    unavailable_retry_after: float = param(
+        1.0, '`retry_after` when the master did not answer', unit='s', check=POSITIVE
+    )
+    max_requests_per_s: float = param(
+        50.0, 'calls per second per caller id, on all three services', unit='/s', check=POSITIVE
+    )
+    burst: int = param(100, 'requests a caller may send at once before the rate applies', check=at_least(1))
+    check_timeout: float = param(
+        1.0, 'limit on each master lookup / probe during validation', unit='s', check=POSITIVE
+    )
+    callback_cache: float = param(
+        5.0, 'how long a verified callback service is trusted', unit='s', check=NON_NEGATIVE
+    )
+    callback_memory: float = param(
+        60.0,
+        'a verified callback service the master stops listing is `UNAVAILABLE`, not `INVALID`, this long',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    registry_period: float = param(
+        0.2, 'minimum time between two `~registry` messages', unit='s', check=NON_NEGATIVE
+    )
+    min_watch_period: float = param(0.1, 'shortest period a watch is granted', unit='s', check=POSITIVE)
+    max_watch_duration: float = param(
+        60.0, 'longest duration a watch is granted (it expires unless renewed)', unit='s', check=POSITIVE
+    )
+    max_watches: int = param(
+        1000, 'watches standing at once; beyond it new watches are refused `BUSY`', check=at_least(1)
+    )
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.max_ejection_time >= self.ejection_time:
+            raise ParamError(
+                'max_ejection_time',
+                f'must be at least ~ejection_time ({self.ejection_time!r}), got {self.max_ejection_time!r}',
+            )
