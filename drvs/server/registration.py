@@ -14,7 +14,16 @@ from dataclasses import dataclass
 
 from drvs.common.status import INVALID, Refusal
 from drvs.common.validation import ValidationError, field_of_view_polygon
-from drvs.server.registry import CHANGED, MOVED, NOT_REGISTERED, REGISTERED, RENEWED, Registration, Registry
+from drvs.server.registry import (
+    CHANGED,
+    MOVED,
+    NOT_REGISTERED,
+    REGISTERED,
+    RENEWED,
+    Client,
+    Registration,
+    Registry,
+)
 from drvs.server.registry import algorithm_names as registered_algorithms
 
 logger = logging.getLogger('rosout.' + __name__)
@@ -53,7 +62,7 @@ class Registrar:
         registry: Registry,
         server: str,
         verify: Callable[[str, str], tuple[str, bool]],
-        make_client: Callable[[str], object],
+        make_client: Callable[[str], Client],
         on_change: Callable[[str, str], None],
         on_removed: Callable[[Registration], None],
     ):

@@ -2,7 +2,7 @@
 
 Registrations are leases; failed forwards remove and eject a vision system;
 :meth:`Registry.match` is the paper's Algorithm 1 through the spatial index. No ROS here:
-the server (:mod:`drvs.ros.server`) checks who may register what and forwards. How and
+:mod:`drvs.server.registration` decides who may register what; the server node forwards. How and
 why: docs/design.md ("The server"); what a vision system sees of it: docs/nodes/drvs_server.md.
 
 >>> registry = Registry()
