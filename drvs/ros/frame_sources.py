@@ -1,10 +1,10 @@
-"""Where a vision system's frames come from, and its frames from a camera topic (``~source:=topic``).
+"""A vision system's frames from a ROS camera (``~source:=topic``): :class:`TopicSource`.
 
-A frame source answers the node (:class:`drvs.ros.vision_system.VisionSystemNode`): a frame for a
-request (``frame``), the floor area to register (``footprint``: None while unknown, [] to
-unregister) and whether requests can be served now (``unavailable``). :class:`TopicSource` reads
-any ROS camera (image, CameraInfo, optional depth, tf) and imports no pybullet; the simulation's
-own rendering is :mod:`drvs.ros.render_source`. Described in docs/nodes/vision_system.md.
+It reads the image (raw or compressed), CameraInfo, an optional aligned depth image and the
+camera's pose on tf, and imports no pybullet. :mod:`drvs.ros.render_source`, the simulation's
+source, answers the same questions: a frame for a request (``frame``), the floor area to register
+(``footprint``: None while unknown, [] to unregister), why requests cannot be served now
+(``unavailable``). Described in docs/nodes/vision_system.md.
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ class TopicSource:
             rospy.Subscriber(image_name, image_type, self._on_frame, queue_size=1, buff_size=IMAGE_BUFFER)
 
     def tag_heights(self) -> dict:
-        """None known: a request (`h=H`) or ``~tag_height`` says."""
+        """None known: a request (``h=H``) or ``~tag_height`` says how high a tag lies."""
         return {}
 
     def describe(self) -> str:

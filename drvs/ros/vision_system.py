@@ -161,7 +161,7 @@ class VisionSystemNode:
         try:
             return self._detect(request)
         except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
-            return self._refuse('request', request, self._internal_error('a request', error))
+            return self._refuse(request, self._internal_error('a request', error))
 
     def _detect(self, request) -> DetectObjectBoundaryResponse:
         arrival = rospy.get_time()
@@ -174,10 +174,10 @@ class VisionSystemNode:
                 self._parsed_algorithms,
             )
         except (AlgorithmError, ValidationError) as error:
-            return self._refuse('request', request, Refusal(INVALID, str(error)))
+            return self._refuse(request, Refusal(INVALID, str(error)))
         problem = self.source.unavailable()
         if problem:
-            return self._refuse('request', request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
+            return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
         self._count_algorithm(request.algorithm)
         if algorithm.algorithm.streaming:
             self._streaming_until = arrival + self.params.motion_window
@@ -190,30 +190,35 @@ class VisionSystemNode:
                 f'busy: {self.params.queue_size} requests are waiting already; try again later',
                 self.params.max_frame_age or 0.1,
             )
-            return self._refuse('request', request, refusal)
+            return self._refuse(request, refusal)
         if _debug_logged():
             rospy.logdebug(
                 '%s: accepted request %r (%s)', rospy.get_name(), request.request_id, request.algorithm
             )
         return ACCEPTED_REPLY
 
-    def _refuse(self, what: str, request, refusal: Refusal):
-        """Refuse a ``'request'`` or a ``'watch'``: count it, log it (throttled per kind)."""
-        if what == 'request':
-            self._count(refused=1)
+    def _refuse(self, request, refusal: Refusal) -> DetectObjectBoundaryResponse:
+        self._count(refused=1)
+        self._log_refusal('request', request.request_id, refusal)
+        return refusal_response(DetectObjectBoundaryResponse, refusal, vision_systems=0)
+
+    def _refuse_watch(self, request, refusal: Refusal) -> WatchObjectBoundaryResponse:
+        self._log_refusal('watch', request.request_id, refusal)
+        return refusal_response(WatchObjectBoundaryResponse, refusal)
+
+    def _log_refusal(self, what: str, request_id: str, refusal: Refusal) -> None:
+        """One line per refusal, at most one a second per kind (a flood of BUSY says it once)."""
+        status = status_name(refusal.status)
         self.node.log_throttled(
-            (what, refusal.status),
+            (what, status),
             rospy.loginfo,
             '%s: refused %s %r (%s): %s',
             rospy.get_name(),
             what,
-            request.request_id,
-            status_name(refusal.status),
+            request_id,
+            status,
             refusal.message,
         )
-        if what == 'request':
-            return refusal_response(DetectObjectBoundaryResponse, refusal, vision_systems=0)
-        return refusal_response(WatchObjectBoundaryResponse, refusal)
 
     def _internal_error(self, what: str, error: Exception) -> Refusal:
         return internal_error(f'vision system {rospy.get_name()}', what, error, self.params.retry_period)
@@ -222,7 +227,7 @@ class VisionSystemNode:
         try:
             return self._watch(request)
         except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
-            return self._refuse('watch', request, self._internal_error('a watch', error))
+            return self._refuse_watch(request, self._internal_error('a watch', error))
 
     def _watch(self, request) -> WatchObjectBoundaryResponse:
         now = rospy.get_time()
@@ -249,9 +254,9 @@ class VisionSystemNode:
                 raise Refusal(UNAVAILABLE, problem, self.params.retry_period)
             grant = self.watches.stand(terms, float(request.duration), now)
         except (AlgorithmError, ValidationError) as error:
-            return self._refuse('watch', request, Refusal(INVALID, str(error)))
+            return self._refuse_watch(request, Refusal(INVALID, str(error)))
         except Refusal as refusal:
-            return self._refuse('watch', request, refusal)
+            return self._refuse_watch(request, refusal)
         self._count(watch_calls=1)
         self._note_watches()
         if grant.new:
