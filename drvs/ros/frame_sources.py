@@ -1,23 +1,10 @@
-"""Where a vision system's frames come from: its own render of the world, or a camera topic.
+"""A vision system's frames from a ROS camera (``~source:=topic``): :class:`TopicSource`.
 
-Both sources answer the same three questions for :class:`drvs.ros.vision_system.VisionSystemNode`:
-a frame for a request (:meth:`frame`), the floor area to register (:meth:`footprint`:
-None while unknown, [] to unregister) and whether requests can be served now
-(:meth:`unavailable`).
-
-:class:`RenderSource` is the simulation shortcut: a private PyBullet copy of the
-world kept in step with world_sim's poses, rendered on demand. It puts its camera on
-tf as sim_camera does (:func:`drvs.ros.tf_frames.camera_transform`): ``map`` ->
-``<camera>_optical_frame``, on ``/tf_static`` for a fixed camera, on ``/tf`` for one on
-a moving mount each time :meth:`RenderSource.broadcast_pose` is called.
-
-:class:`TopicSource` is any ROS camera: ``image`` (sensor_msgs/Image, any encoding
-cv_bridge converts to rgb8) or ``image/compressed`` (sensor_msgs/CompressedImage),
-``camera_info`` (sensor_msgs/CameraInfo: intrinsics and distortion, read with
-image_geometry), optionally an aligned ``depth`` image (32FC1 metres or 16UC1
-millimetres, paired with the colour image by stamp), and the pose of the image's
-``header.frame_id`` in ``map`` from tf2 at the image's stamp. Only the newest frame
-is kept (:class:`drvs.vision.frame_feed.FrameFeed`); it is decoded when a request uses it.
+It reads the image (raw or compressed), CameraInfo, an optional aligned depth image and the
+camera's pose on tf, and imports no pybullet. :mod:`drvs.ros.render_source`, the simulation's
+source, answers the same questions: a frame for a request (``frame``), the floor area to register
+(``footprint``: None while unknown, [] to unregister), why requests cannot be served now
+(``unavailable``). Described in docs/nodes/vision_system.md.
 """
 
 from __future__ import annotations
@@ -30,15 +17,9 @@ import rospy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from drvs.common.transforms import matrix_from_quaternion
-from drvs.ros.tf_frames import camera_transform, optical_frame
-from drvs.ros.world_poses import LatestPoses
-from drvs.sim.scene import Scene
-from drvs.sim.simulation import mount_position
-from drvs.vision.camera import PinholeCamera
 from drvs.vision.frame import Frame
 from drvs.vision.frame_feed import FrameFeed, FrameTimeout
 from drvs.vision.optics import CameraModel
-from drvs.vision.pipeline import FrameCache
 
 SUPPORTED_DISTORTION = ('plumb_bob', 'rational_polynomial', '')
 """CameraInfo distortion models OpenCV's pinhole functions read (an empty D means none)."""
@@ -54,106 +35,6 @@ FRAMES_BEFORE_INFO = 10
 
 class FrameUnavailable(RuntimeError):
     """No frame can be had for a request; the message says why and what to check."""
-
-
-class RenderSource:
-    """Frames rendered on demand from a private copy of the world (``~source:=render``)."""
-
-    name = 'render'
-
-    def __init__(self, world, config, params, count):
-        self.world = world
-        self.config = config
-        self.params = params
-        self.base_camera = PinholeCamera.from_config(config)
-        self._count = count
-        self.scene: Scene | None = None
-        self._scene_lock = threading.Lock()  # PyBullet is not thread-safe
-        self.poses = LatestPoses(params.poses_topic)
-        self._start_time = 0.0
-        self.cache = FrameCache(self._capture, params.max_frame_age, clock=rospy.get_time)
-        self.frame_id = optical_frame(config.name)
-        self._broadcaster = None  # tf, made by start(): static for a fixed camera
-        self._fixed_footprint: list | None = None
-
-    @property
-    def moving(self) -> bool:
-        """Whether the camera is on a moving mount (its pose must be broadcast as it goes)."""
-        return bool(self.config.moving)
-
-    def start(self) -> None:
-        import tf2_ros
-
-        self.scene = Scene(self.world)
-        self._start_time = rospy.get_time()
-        self.poses.start()
-        if self.moving:
-            self._broadcaster = tf2_ros.TransformBroadcaster()
-            self.broadcast_pose()
-        else:
-            self._broadcaster = tf2_ros.StaticTransformBroadcaster()
-            stamp = rospy.Time.from_sec(self._start_time)
-            self._broadcaster.sendTransform(camera_transform(self.base_camera, self.frame_id, stamp))
-
-    def broadcast_pose(self) -> None:
-        """A moving camera's pose now, on ``/tf`` (a fixed one is on ``/tf_static`` from the start)."""
-        now = rospy.get_time()
-        transform = camera_transform(self.camera_at(now), self.frame_id, rospy.Time.from_sec(now))
-        self._broadcaster.sendTransform(transform)
-
-    def frame_age(self) -> float | None:
-        """None: frames are rendered on demand, so they cannot go stale."""
-        return None
-
-    def describe(self) -> str:
-        camera = self.base_camera
-        return (
-            f'camera {self.config.name} at {camera.eye} looking at {camera.target}, '
-            f'{camera.width}x{camera.height}, fov {camera.fov_deg:.0f} deg (rendered)'
-        )
-
-    def camera_at(self, stamp: float) -> PinholeCamera:
-        """The camera model at time ``stamp`` (its mount may move along its waypoints)."""
-        if not self.config.moving:
-            return self.base_camera
-        return self.base_camera.moved_to(*mount_position(self.config, stamp - self._start_time))
-
-    def _capture(self, stamp: float) -> Frame:
-        _, poses = self.poses.latest()
-        with self._scene_lock:
-            if self.scene is None:
-                raise FrameUnavailable('the vision system is shutting down')
-            if poses:
-                self.scene.apply_poses(poses)
-            frame = self.scene.render(self.camera_at(stamp), stamp)
-        self._count(renders=1)
-        return frame
-
-    def frame(self, arrival: float) -> tuple[Frame, bool]:
-        """(frame, whether it was reused from a capture shared with earlier requests)."""
-        frame, reused = self.cache.get(arrival)
-        if reused:
-            self._count(cache_hits=1)
-        return frame, reused
-
-    def newest(self) -> Frame:
-        return self.cache.get(rospy.get_time())[0]
-
-    def footprint(self) -> list | None:
-        if not self.config.moving:  # asked 20 times a second: a fixed camera's never changes
-            if self._fixed_footprint is None:
-                self._fixed_footprint = self.base_camera.floor_footprint(self.world.floor_size)
-            return self._fixed_footprint
-        return self.camera_at(rospy.get_time()).floor_footprint(self.world.floor_size)
-
-    def unavailable(self) -> str | None:
-        return None
-
-    def close(self) -> None:
-        with self._scene_lock:
-            if self.scene is not None:
-                self.scene.close()
-                self.scene = None
 
 
 class _Received:
@@ -172,6 +53,7 @@ class TopicSource:
     """Frames from a camera topic, its CameraInfo and tf (``~source:=topic``)."""
 
     name = 'topic'
+    moving = False  # the camera's driver puts its pose on tf
 
     def __init__(self, params, count):
         from cv_bridge import CvBridge
@@ -215,6 +97,10 @@ class TopicSource:
             self._sync.registerCallback(self._on_frame)
         else:
             rospy.Subscriber(image_name, image_type, self._on_frame, queue_size=1, buff_size=IMAGE_BUFFER)
+
+    def tag_heights(self) -> dict:
+        """None known: a request (``h=H``) or ``~tag_height`` says how high a tag lies."""
+        return {}
 
     def describe(self) -> str:
         depth = f' with depth {self.depth_topic}' if self.params.depth else ''

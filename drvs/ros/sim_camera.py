@@ -1,50 +1,8 @@
-"""The sim_camera node: the simulated world's vision systems as ROS camera drivers, on topics and tf.
+"""The sim_camera node: the simulated world's vision systems as ROS camera drivers (images,
+CameraInfo, tf), rendered with PyBullet from world_sim's poses.
 
-For each vision system of a world file it publishes what a real camera driver
-would: colour images, aligned depth images, compressed images, CameraInfo and the
-pose of the optical frame on tf, so that a consumer (a vision system in topic
-mode, ``image_view``, ``rviz``) cannot tell it from hardware. The images are
-rendered from one PyBullet copy of the world (:class:`drvs.sim.scene.Scene`) kept in
-step with world_sim's ``/world_sim/poses`` (static at the world file's poses while
-world_sim is absent). A camera with ``distortion`` in its world entry renders the
-larger canvas of its lens and publishes the distorted view (:mod:`drvs.sim.lens`).
-
-A camera is rendered only while someone subscribes to its colour, depth or
-compressed image (checked every cycle), at ``~rate``; the cameras take turns in one
-guarded loop (:class:`drvs.common.guard.LoopGuard`: PyBullet is not thread-safe). When
-rendering takes longer than a cycle the loop publishes as fast as it can, without
-a burst to catch up. Every image is stamped with the moment it shows: the stamp of
-the poses message it was rendered from, or the render time while no poses have
-arrived. A camera publishes a frame only when that stamp differs from its last
-one: with world_sim stopped, a frame with an old stamp again would only repeat the
-last (and tf would warn of a repeated transform).
-
-Parameters: the fields of :class:`SimCameraParams`, each declared with its default,
-meaning and range; README.md's sim_camera table is generated from them.
-
-Topics, for each camera NAME (relative names: ``/NAME/...`` in the root namespace):
-
-``NAME/image_raw`` (sensor_msgs/Image, rgb8)
-    The view.
-``NAME/camera_info`` (sensor_msgs/CameraInfo)
-    With every view, the same header: ``distortion_model`` plumb_bob, ``D`` the lens's
-    5 coefficients (zeros for an ideal lens), ``K`` the OpenCV intrinsics of the
-    published images, ``R`` identity, ``P`` = [K | 0].
-``NAME/depth/image_raw`` (sensor_msgs/Image, 32FC1), with ``~depth``
-    Metres along the optical axis, aligned with the view: same size, K and header.
-``NAME/image_raw/compressed`` (sensor_msgs/CompressedImage)
-    The view as image_transport's ``compressed`` plugin writes it (format
-    ``rgb8; jpeg compressed bgr8`` or ``rgb8; png compressed bgr8``).
-``~poses_topic`` (drvs/BodyPoses, subscribed)
-
-tf frames:
-
-``map`` -> ``NAME_optical_frame``
-    The camera's optical frame (z forward, x right, y down; :func:`drvs.ros.tf_frames.camera_transform`),
-    the ``frame_id`` of its images. A fixed camera's on ``/tf_static`` at start; one on a
-    moving mount (``waypoints`` and ``speed``) on ``/tf`` with each image's stamp, sent
-    before the image. A mount starts its waypoint loop when the node starts (as a vision
-    system in render mode does: :func:`drvs.sim.simulation.mount_position`).
+Simulation glue (it imports pybullet). Parameters, topics, tf frames and timing are in
+docs/nodes/sim_camera.md.
 """
 
 from __future__ import annotations
@@ -62,8 +20,9 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from drvs.common.guard import RESTART, LoopGuard
+from drvs.common.health import OK, Health
 from drvs.common.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
+from drvs.ros.node import NodeScaffold
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.sim.lens import Lens
@@ -225,8 +184,10 @@ class SimCameraNode:
         self.scene: Scene | None = None
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene
         self.poses = LatestPoses(params.poses_topic)
-        self._stopping = threading.Event()
-        self.guard = LoopGuard(on_fatal=lambda reason: rospy.signal_shutdown(reason), stop=self._stopping)
+        # Stop event and guarded loop; no /diagnostics (the scaffold's start() is not called): a
+        # simulation node is not part of DRVS.
+        self.node = NodeScaffold(lambda: Health(OK, 'simulated cameras'))
+        self.guard = self.node.guard  # node_main's exit code reads guard.failure
         self._start_time = 0.0
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -242,7 +203,7 @@ class SimCameraNode:
         if fixed:
             self.static_broadcaster.sendTransform(fixed)
         self.poses.start()
-        self.guard.spawn(self._render_loop, 'render', RESTART)
+        self.node.spawn(self._render_loop, 'render')
         rospy.on_shutdown(self.stop)
         for feed in self.feeds:
             rospy.loginfo(
@@ -266,9 +227,7 @@ class SimCameraNode:
 
     def stop(self) -> None:
         """Stop the loop, withdraw the topics, release the scene (also after the loop failed)."""
-        self._stopping.set()
-        for thread in self.guard.threads:
-            thread.join(timeout=5.0)
+        self.node.stop(join=5.0)
         with self._scene_lock:
             if self.scene is None:  # stopped already
                 return
@@ -281,11 +240,11 @@ class SimCameraNode:
     def _render_loop(self) -> None:
         period = 1.0 / self.params.rate
         next_cycle = time.monotonic()
-        while not self._stopping.is_set():
+        while not self.node.stopped:
             started = time.monotonic()
             published = 0
             for feed in self.feeds:
-                if self._stopping.is_set():
+                if self.node.stopped:
                     return
                 if feed.subscribed():
                     published += self._publish(feed)
@@ -303,14 +262,14 @@ class SimCameraNode:
                         period,
                     )
                 next_cycle, delay = time.monotonic(), 0.0
-            self._stopping.wait(delay)
+            self.node.wait(delay)
 
     def render(self, feed: Feed) -> Frame | None:
         """The camera's view of the latest poses, distorted by its lens; None if it shows nothing new."""
         stamp, poses = self.poses.latest()
         if stamp is None:
             stamp = rospy.get_time()  # no poses yet: the world file's, now
-        if stamp == feed.last_stamp:
+        if stamp == feed.last_stamp:  # it would only repeat the last (and tf warn of a repeat)
             return None
         with self._scene_lock:
             if self.scene is None:  # stopped

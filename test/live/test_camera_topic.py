@@ -57,12 +57,21 @@ def start(ros, camera=None, vision=None, remap=None):
         name='cam1',
         params={'source': 'topic', **(vision or {})},
         remap=remap or TOPICS,
+        env=without_pybullet(ros),
     )
     output = ros.root / 'callbacks.jsonl'
     recorder = ros.start_node('test/nodes/callback_recorder.py', name='recorder', params={'output': output})
     ros.wait_for_service(CALLBACK, node=recorder)
     wait_for(lambda: registered(), 30, 'cam1 to register its field of view', on_timeout=ros.describe)
     return cam1, output, stamps
+
+
+def without_pybullet(ros) -> dict:
+    """An environment in which ``import pybullet`` fails: a camera on a topic must not need it."""
+    blocker = ros.root / 'no_pybullet'
+    blocker.mkdir(exist_ok=True)
+    (blocker / 'pybullet.py').write_text("raise ImportError('pybullet: only the simulation may import it')\n")
+    return {'PYTHONPATH': f'{blocker}:{ros.env["PYTHONPATH"]}'}
 
 
 def registered() -> bool:

@@ -216,33 +216,3 @@ def test_a_camera_on_a_moving_mount_registers_where_it_looks_and_routing_follows
     wait_for(covered_by(1, far_end), 30, 'the rover to see the far end', on_timeout=ros.describe)
     wait_for(covered_by(0, far_end), 30, 'the rover to leave it again', on_timeout=ros.describe)
     wait_for(covered_by(1, far_end), 30, 'the rover to come back', on_timeout=ros.describe)
-
-
-def test_requests_on_one_frame_with_one_algorithm_detect_once(monkeypatch):
-    """FrameDetections: one detection per frame and algorithm string; none kept for a streaming one."""
-    from types import SimpleNamespace
-
-    import drvs.ros.vision_system as vision_system
-
-    detected = []
-    monkeypatch.setattr(vision_system, 'on_floor', lambda frame, algorithm: detected.append(frame) or [frame])
-
-    def parsed(text, streaming=False):
-        return SimpleNamespace(text=text, algorithm=SimpleNamespace(streaming=streaming))
-
-    detections = vision_system.FrameDetections(limit=2)
-    old, new = SimpleNamespace(stamp=1.0), SimpleNamespace(stamp=2.0)
-    assert detections.on_floor(old, parsed('colour:a')) == [old]
-    assert detections.on_floor(old, parsed('colour:a')) == [old]  # reused
-    assert detected == [old]
-    detections.on_floor(new, parsed('colour:a'))  # a newer frame replaces the objects kept
-    detections.on_floor(new, parsed('colour:a'))
-    detections.on_floor(old, parsed('colour:a'))  # an older frame is detected, not kept
-    detections.on_floor(new, parsed('colour:a'))
-    assert detected == [old, new, old]
-    for text in ('colour:b', 'colour:c', 'colour:c'):  # at most `limit` algorithm strings kept
-        detections.on_floor(new, parsed(text))
-    assert detected == [old, new, old, new, new, new]
-    detections.on_floor(new, parsed('motion', streaming=True))
-    detections.on_floor(new, parsed('motion', streaming=True))
-    assert detected[-2:] == [new, new]
