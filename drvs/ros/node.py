@@ -40,7 +40,7 @@ class NodeScaffold:
     - :meth:`log_throttled`: at most one line per kind and :data:`LOG_PERIOD`.
 
     :param health: the node's health now (called on the diagnostics thread); None for a node
-        that publishes no diagnostics (the scenario recorder, which is no part of DRVS).
+        that publishes none (the simulation nodes and the scenario recorder: no part of DRVS).
     :param counters: the names of the node's counters.
     :param hardware_id: what the diagnostics status is about (default: the host name).
     """

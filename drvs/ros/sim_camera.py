@@ -20,7 +20,6 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from drvs.common.health import OK, Health
 from drvs.common.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
 from drvs.ros.node import NodeScaffold
 from drvs.ros.tf_frames import camera_transform, optical_frame
@@ -184,9 +183,7 @@ class SimCameraNode:
         self.scene: Scene | None = None
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene
         self.poses = LatestPoses(params.poses_topic)
-        # Stop event and guarded loop; no /diagnostics (the scaffold's start() is not called): a
-        # simulation node is not part of DRVS.
-        self.node = NodeScaffold(lambda: Health(OK, 'simulated cameras'))
+        self.node = NodeScaffold(None)  # no /diagnostics: a simulation node is not part of DRVS
         self.guard = self.node.guard  # node_main's exit code reads guard.failure
         self._start_time = 0.0
 

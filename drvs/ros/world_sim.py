@@ -19,7 +19,6 @@ from geometry_msgs.msg import Twist
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from drvs.common.health import OK, Health
 from drvs.common.settings import POSITIVE, REQUIRED, Range, Settings, param
 from drvs.msg import BodyPoses
 from drvs.ros.messages import body_poses_to_msg, to_time
@@ -68,9 +67,7 @@ class WorldSimNode:
         self.clock: StepClock | None = None
         self._lock = threading.Lock()  # guards the simulation, the clock and the command times
         self._last_command: dict[str, float] = {}  # robot -> when its last command came
-        # Stop event and guarded loop; no /diagnostics (the scaffold's start() is not called): the
-        # simulated world is not part of DRVS.
-        self.node = NodeScaffold(lambda: Health(OK, 'simulated world'))
+        self.node = NodeScaffold(None)  # no /diagnostics: the simulated world is not part of DRVS
         self.guard = self.node.guard  # node_main's exit code reads guard.failure
 
     def start(self) -> None:
