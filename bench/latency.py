@@ -245,14 +245,14 @@ STEPS = {  # process -> (what, whose, steps timed, steps subtracted); "…": a p
         (
             '… objects on the floor (the first request detects)',
             'DRVS',
-            ['drvs.ros.vision_system:FrameDetections.on_floor'],
+            ['drvs.vision.detections:FrameDetections.on_floor'],
             [],
         ),
         ('… clip them to the region', 'DRVS', ['drvs.ros.vision_system:in_region'], []),
         (
             '… call back: build, send, read the reply',
             'DRVS',
-            ['drvs.ros.vision_system:VisionSystemNode._call_back'],
+            ['drvs.ros.callback_sender:CallbackSender.send'],
             [],
         ),
     ),
