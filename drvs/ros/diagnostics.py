@@ -1,23 +1,6 @@
-"""Publishes a node's health on ``/diagnostics``, once a period.
-
-``/diagnostics`` carries ``diagnostic_msgs/DiagnosticArray``, the ROS convention
-read by ``rqt_robot_monitor``, ``rqt_runtime_monitor`` and ``diagnostic_aggregator``.
-:class:`DiagnosticsPublisher` calls ``sample()`` (a function of the node that
-returns a :class:`drvs.common.health.Health`, usually one of :mod:`drvs.common.health`'s rule
-functions applied to the node's counters) every ``period`` seconds of wall time
-and publishes one ``DiagnosticStatus``. Wall time, not ROS time: health must keep
-flowing when a simulation's clock is paused. Usage, after ``rospy.init_node``::
-
-    diagnostics = DiagnosticsPublisher(f'drvs: {rospy.get_name()}', 'cam1', node.health, guard=node.guard)
-    diagnostics.start()
-    rospy.on_shutdown(diagnostics.stop)
-
-A ``sample()`` that raises does not end the loop: the status published instead is
-ERROR ``health check failed: <type>: <error>`` (:func:`drvs.common.health.check_failed`),
-and the traceback is logged once per distinct failure, not once a period.
-
-In ROS 1 Python a ``byte`` field (``DiagnosticStatus.level``) is an ``int`` (genpy
-maps ``byte`` to int8); ``bytes`` is refused by serialisation.
+"""Publishes a node's health (:mod:`drvs.common.health`) on ``/diagnostics``, once a period of
+wall time, from a guarded thread. What each node reports: its page in docs/nodes/; why
+wall time and what a failing health check publishes: docs/design.md ("Parameters, health").
 """
 
 from __future__ import annotations

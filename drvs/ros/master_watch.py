@@ -1,28 +1,9 @@
 """Registers a rospy node again after the ROS master restarts (ros/ros_comm#185).
 
-rospy registers publications, subscriptions and services with the master once,
-when they are created. A restarted master knows none of them, so new lookups
-fail although open connections keep working. :class:`MasterWatch` polls the
-master every ``period`` seconds (``getPid`` and ``lookupNode`` of this node in one
-XML-RPC multicall, with a timeout) and, when :class:`drvs.common.master_restart.MasterRestartDetector`
-says so (a new master pid, or a master that does not know this node), registers
-everything this process has again, the way rospy's ``RegManager.start`` does at
-``init_node``:
-
-- publications (``TopicManager.get_publications()``: name, type): ``registerPublisher``;
-- subscriptions (``TopicManager.get_subscriptions()``): ``registerSubscriber``, whose
-  answer (the topic's current publishers) goes to this node's own ``publisherUpdate``
-  so it connects to publishers it does not know yet;
-- services (``ServiceManager.get_services()``: name, rosrpc URI): ``registerService``.
-
-/rosout and the ``~get_loggers`` / ``~set_logger_level`` services are among them.
-While it registers it holds the topic and service managers' locks (with a
-timeout), as rospy does, so no registration of a new topic or service
-interleaves. Usage, right after ``rospy.init_node``::
-
-    master_watch = MasterWatch()
-    master_watch.start()
-    rospy.on_shutdown(master_watch.stop)
+:class:`MasterWatch` polls the master and, when
+:class:`drvs.common.master_restart.MasterRestartDetector` says so, registers every
+publication, subscription and service of this process again, as rospy does at
+``init_node``. Why and how: docs/design.md ("rospy facts the design rests on").
 """
 
 from __future__ import annotations

@@ -1,26 +1,8 @@
 """How every DRVS node starts: find the master, ``init_node``, read the settings, build the node.
 
-A user's mistake ends the node with one message on stderr (and /rosout once the
-node is up), or one block listing every problem, and exit code 2
-(:data:`USER_ERROR`), never a traceback: a wrong or missing parameter (named,
-with where its value came from, :mod:`drvs.ros.params`), a world file that cannot
-be used (:class:`drvs.sim.world.WorldError`), a file or folder that cannot be read or
-written, no ROS master, no ``/clock`` under ``/use_sim_time``. Anything else is a bug and
-keeps its traceback. A private parameter the node does not know is a warning with the
-nearest known name.
-
-With ``/use_sim_time`` true a node is built only once the simulated time has begun (the
-first ``/clock`` message came, :func:`wait_for_clock`), so every time it reads is
-simulated; world_sim, which publishes ``/clock``, says ``publishes_clock=True``.
-
-A node's executable is then a few lines::
-
-    def main() -> int:
-        return node_main('drvs', ServerSettings, DrvsServer)
-
-``build(settings)`` constructs the node (no blocking work: its errors are the
-user's); ``run(node)`` starts and serves it and returns the exit code, by default
-:func:`spin`.
+A user's mistake is one message and exit code 2 (:data:`USER_ERROR`), never a
+traceback; under ``/use_sim_time`` a node is built once simulated time has begun.
+What users see: docs/troubleshooting.md; the rospy facts: docs/design.md.
 """
 
 from __future__ import annotations
