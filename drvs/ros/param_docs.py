@@ -17,12 +17,10 @@ import sys
 from pathlib import Path
 
 from drvs.common.settings import annotation_type
-from drvs.ros.recorder import RecorderSettings
-from drvs.ros.robot import RobotParams
-from drvs.ros.server import ServerSettings
-from drvs.ros.sim_camera import SimCameraParams
-from drvs.ros.vision_system import VisionSystemParams
-from drvs.ros.world_sim import WorldSimSettings
+from drvs.robot.params import RobotParams
+from drvs.server.params import ServerSettings
+from drvs.sim.params import RecorderSettings, SimCameraParams, WorldSimSettings
+from drvs.vision.params import VisionSystemParams
 
 NODES = {
     'drvs_server': ServerSettings,

@@ -18,7 +18,6 @@ import time
 import warnings
 import xmlrpc.client
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
 
 import genpy
@@ -28,7 +27,6 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.common.settings import POSITIVE, REQUIRED, Settings, param
 from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, ServerStats, VisionSystemStats
 from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
 from drvs.ros.node import NodeScaffold
@@ -274,13 +272,6 @@ class RunRecorder:
                     *totals,
                 )
             )
-
-
-@dataclass(frozen=True)
-class RecorderSettings(Settings):
-    world: str = param(REQUIRED, 'the world file of the run')
-    out: str = param(REQUIRED, 'the folder for `summary.json`, `trace.json`, `run.png` and `status.line`')
-    cpu_period: float = param(1.0, 'time between CPU samples of every node', unit='s', check=POSITIVE)
 
 
 class RecorderNode:

@@ -26,11 +26,11 @@ from drvs.ros.server_checks import MasterChecks
 from drvs.ros.server_forwarding import Forwarder, Outgoing, ReplyFirstService, watch_service_of
 from drvs.server import answers
 from drvs.server.dispatch import Busy, Dispatcher
+from drvs.server.params import ServerSettings
 from drvs.server.rate_limit import RateLimiter
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
-from drvs.server.settings import ServerSettings
 from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
 from drvs.srv import (
     DetectObjectBoundary,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -20,11 +19,12 @@ from geometry_msgs.msg import TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from drvs.common.settings import POSITIVE, REQUIRED, ParamError, Settings, between, one_of, param
+from drvs.common.settings import ParamError
 from drvs.ros.node import NodeScaffold
 from drvs.ros.tf_frames import camera_transform, optical_frame
 from drvs.ros.world_poses import LatestPoses
 from drvs.sim.lens import Lens
+from drvs.sim.params import SimCameraParams
 from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
 from drvs.sim.simulation import mount_position
 from drvs.sim.world import Camera
@@ -33,30 +33,8 @@ from drvs.vision.camera import PinholeCamera
 from drvs.vision.frame import Frame
 from drvs.vision.optics import intrinsics_of
 
-COMPRESSIONS = ('jpeg', 'png')
 SLOW_LOG_PERIOD = 10.0
 """Seconds between debug lines saying that rendering falls behind ``~rate``."""
-
-
-@dataclass(frozen=True)
-class SimCameraParams(Settings):
-    world: str = param(REQUIRED, 'the world file')
-    cameras: str = param(
-        '',
-        'the cameras to publish, comma-separated (`vs1,vs2`) or a YAML list (`[vs1, vs2]`)',
-        default_text='every vision system of the world',
-        separator=',',
-    )
-    rate: float = param(10.0, 'frames per second per subscribed camera', unit='Hz', check=POSITIVE)
-    depth: bool = param(True, 'publish depth images')
-    compression: str = param('jpeg', 'the format of `image_raw/compressed`', check=one_of(*COMPRESSIONS))
-    jpeg_quality: int = param(90, 'JPEG quality of `image_raw/compressed`', check=between(1, 100))
-    poses_topic: str = param('/world_sim/poses', "world_sim's pose topic")
-
-    @property
-    def camera_names(self) -> tuple[str, ...]:
-        """The names in ``~cameras``, in order; empty for every camera."""
-        return tuple(name.strip() for name in self.cameras.split(',') if name.strip())
 
 
 def selected_cameras(world, names: tuple[str, ...]) -> tuple[Camera, ...]:

@@ -35,7 +35,6 @@ from drvs.ros.markers import markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.node import NodeScaffold, internal_error, refusal_response
 from drvs.ros.service_client import ServiceCallError, ServiceClient
-from drvs.ros.vision_system_params import VisionSystemParams
 from drvs.srv import (
     DetectObjectBoundary,
     DetectObjectBoundaryResponse,
@@ -46,6 +45,7 @@ from drvs.srv import (
 )
 from drvs.vision.detections import FrameDetections, Job
 from drvs.vision.frame import Frame
+from drvs.vision.params import VisionSystemParams
 from drvs.vision.pipeline import draw_detections, in_region, on_floor
 from drvs.vision.registration import RENEW, UNREGISTER, Attempt, Registration
 from drvs.vision.watch_runner import Terms, WatchRunner, parse_watch

@@ -11,7 +11,6 @@ import json
 import math
 import threading
 import time
-from dataclasses import dataclass
 
 import rospy
 import tf2_ros
@@ -19,31 +18,13 @@ from geometry_msgs.msg import Twist
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from drvs.common.settings import POSITIVE, REQUIRED, Range, Settings, param
 from drvs.msg import BodyPoses
 from drvs.ros.messages import body_poses_to_msg, to_time
 from drvs.ros.node import NodeScaffold
 from drvs.ros.tf_frames import body_transform
+from drvs.sim.params import WorldSimSettings
 from drvs.sim.simulation import Simulation, StepClock
 from drvs.sim.world_file import load_world
-
-FACTOR = Range(lambda value: 0 < value <= 1, 'must be above 0 and at most 1', '0 < x ≤ 1')
-
-
-@dataclass(frozen=True)
-class WorldSimSettings(Settings):
-    world: str = param(REQUIRED, 'the world file')
-    rate: float = param(30.0, 'simulation steps and publications per second', unit='Hz', check=POSITIVE)
-    cmd_timeout: float = param(
-        0.5, 'a robot stops after this long without a message on its `cmd_vel`', unit='s', check=POSITIVE
-    )
-    real_time_factor: float | None = param(
-        None,
-        'simulated seconds per wall second; below 1 needs `/use_sim_time` true (world_sim then publishes '
-        '`/clock`)',
-        check=FACTOR,
-        default_text="the world's `real_time_factor` (1)",
-    )
 
 
 class WorldSimNode:

@@ -54,7 +54,6 @@ PYBULLET_GLUE = (
     'drvs.ros.sim_camera',  # the sim_camera node renders the scene
     'drvs.ros.render_source',  # a vision system's frames rendered from the scene (no real camera)
     'drvs.testing.tags',  # tests render printed tags through the scene
-    'drvs.ros.param_docs',  # `make docs` reads every node's settings, the simulation nodes' too
 )
 
 RULE_ROS = 'pure packages never import ROS, drvs.ros, drvs.msg, drvs.srv or drvs.tools'

@@ -21,6 +21,7 @@ from drvs.common.settings import (
     one_of,
     param,
 )
+from drvs.robot.params import RobotParams
 from drvs.ros.params import (
     command_line_params,
     origin_note,
@@ -29,12 +30,9 @@ from drvs.ros.params import (
     unknown_param_warnings,
     writable_folder,
 )
-from drvs.ros.recorder import RecorderSettings
-from drvs.ros.robot import RobotParams
-from drvs.ros.server import ServerSettings
-from drvs.ros.sim_camera import SimCameraParams
-from drvs.ros.vision_system import VisionSystemParams
-from drvs.ros.world_sim import WorldSimSettings
+from drvs.server.params import ServerSettings
+from drvs.sim.params import RecorderSettings, SimCameraParams, WorldSimSettings
+from drvs.vision.params import VisionSystemParams
 
 
 @dataclass(frozen=True)
