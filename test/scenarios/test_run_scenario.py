@@ -281,7 +281,14 @@ def test_stop_scenario_cleans_up_after_a_killed_run_and_a_second_run_is_refused(
 
     os.kill(runner.pid, signal.SIGKILL)  # the script only, not its process group
     runner.process.wait(10)
-    time.sleep(1.0)
+    killed = time.time_ns()
+    # The run goes on without its script: the recorder writes status.line again (every 0.5 s).
+    wait_for(
+        lambda: (out / 'status.line').stat().st_mtime_ns > killed,
+        20,
+        'the recorder to write status.line after the script was killed',
+        on_timeout=lambda: (out / 'recorder.log').read_text(errors='replace'),
+    )
     assert all(runs(pid, start) for pid, start, _ in nodes), 'a node died with its script'
     second = run([SCRIPT, WORLD, '--out', str(out)])
     assert second.returncode == 2
