@@ -8,6 +8,8 @@ import yaml
 
 from drvs.testing import read_json_lines, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 FLOOR = (3.0, 3.0)
 STATION = (2.6, 1.5)
 MODELS = {

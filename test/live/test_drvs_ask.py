@@ -20,6 +20,8 @@ from drvs.tools.ask import (
     parse_args,
 )
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 STATION = 'colour:0,0,150,80,80,255'
 

@@ -25,6 +25,8 @@ from drvs.testing.tags import (
 )
 from drvs.vision.optics import intrinsics_of
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 CAMERA = CAMERAS['from_the_north_east']
 
 

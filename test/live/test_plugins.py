@@ -26,6 +26,8 @@ from drvs.testing.detect import detect
 from drvs.testing.harness import parse_echo
 from drvs.vision.frame import Frame
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN = REPO / 'test' / 'plugin_example'
 DISTRIBUTION = 'drvs-example-plugin'

@@ -25,6 +25,8 @@ from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.optics import optical_pose_of
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
 LINE_STRIP, DELETEALL = 4, 3  # visualization_msgs/Marker type and action

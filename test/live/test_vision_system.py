@@ -3,6 +3,7 @@
 import json
 import threading
 
+import pytest
 from shapely.geometry import Polygon
 
 from drvs.ros.service_client import ServiceClient
@@ -12,6 +13,8 @@ from drvs.sim.world_file import load_world
 from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import echo, read_json_lines, wait_for
 from drvs.testing.detect import detect as request
+
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
