@@ -131,6 +131,13 @@ def _stop_groups(processes: Iterable[subprocess.Popen], grace: float = STOP_GRAC
             process.wait(grace)
 
 
+def _default_sigint() -> None:
+    """In the child before it runs: SIGINT as a terminal gives it. A test run started in the
+    background (``make test &``, some CI runners) ignores SIGINT, and its children would
+    inherit that: rosmaster would sit out each stop's grace, and a bash script could not trap it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class NodeProcess:
     """A process started by the harness, with its combined output in ``log_path``."""
 
@@ -147,6 +154,7 @@ class NodeProcess:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             start_new_session=True,
+            preexec_fn=_default_sigint,
         )
 
     @property
