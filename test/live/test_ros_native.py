@@ -174,10 +174,10 @@ def test_a_topic_camera_whose_feed_stops_reports_an_error(graph):
 
 
 def test_the_blind_robot_reports_its_state_and_echo_shows_its_status(ros):
-    from test_blind_robot import start, write_world
+    from test_blind_robot import NEAR, start, write_world
 
     diagnostics = start_recorder(ros, '/diagnostics')
-    start(ros, write_world(ros.root, []), robot_params={'once': False})
+    start(ros, write_world(ros.root, [], start=NEAR), robot_params={'once': False})
     status = wait_status(
         ros, diagnostics, 'drvs: /robot', lambda s: s['values']['state'] == 'arrived', 'arrived', timeout=60
     )
