@@ -2,9 +2,14 @@
 
 ``ros``: a :class:`drvs.testing.RosHarness` per test — a private rosmaster on a
 free port with its own ROS_HOME and log folder; every node started through it
-is stopped at teardown, also when the test fails or times out. ``graph``: the
-same, with this process's environment pointing at that master, so the test can
-call services itself.
+is stopped at teardown, also when the test fails or times out. In a module marked
+``shared_master`` (``pytestmark = pytest.mark.shared_master``) the tests share the
+master of ``module_ros`` instead: each test's harness still has its own folder and
+nodes, and leaves the master as it found it (the nodes that registered since are
+forgotten, the parameters set back). Nodes a module starts on ``module_ros`` itself
+(a module-scoped fixture: a stack its tests only read) run until the module ends.
+``graph``: ``ros``, with this process's environment pointing at that master, so the
+test can call services itself.
 """
 
 import os
@@ -21,11 +26,25 @@ def pytest_configure(config):
     # Every process the suite starts carries this marker, so the end-of-session
     # check (and test_harness) can find anything left behind.
     os.environ.setdefault(SESSION_VARIABLE, uuid.uuid4().hex)
+    config.addinivalue_line(
+        'markers',
+        'shared_master: the tests of this module share one master (module_ros); see test/conftest.py',
+    )
+
+
+@pytest.fixture(scope='module')
+def module_ros():
+    """A harness for the whole module: the master its ``shared_master`` tests share."""
+    with RosHarness() as harness:
+        yield harness
 
 
 @pytest.fixture
-def ros():
-    harness = RosHarness()
+def ros(request):
+    if request.node.get_closest_marker('shared_master'):
+        harness = RosHarness(master=request.getfixturevalue('module_ros').master)
+    else:
+        harness = RosHarness()
     try:
         yield harness
     finally:

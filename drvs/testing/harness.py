@@ -3,9 +3,15 @@
 Each :class:`RosHarness` owns a temporary folder, a private ``rosmaster`` on a
 free port (with its own ROS_HOME and log directory there) and every node it
 started as a subprocess in its own process group. :meth:`RosHarness.close`
-stops them all: SIGINT, wait, SIGTERM, wait, SIGKILL to the group. Every
+stops them all together: SIGINT, wait, SIGTERM, wait, SIGKILL to each group. Every
 process carries the environment variable ``DRVS_TEST_SESSION`` so that
 :func:`processes_of_session` can prove nothing was left behind.
+
+A harness can instead share another's master (``RosHarness(master=...)``, the
+``ros`` fixture of a module marked ``shared_master``): it then owns only its folder
+and its nodes, and on closing makes the master forget every node that registered
+after it opened and sets the parameters back, so the next test finds the master as
+this one did.
 
 Nothing here imports rospy: the harness talks to the master over XML-RPC.
 """
@@ -92,26 +98,44 @@ STOP_GRACE = float(os.environ.get('DRVS_TEST_STOP_GRACE', '5'))
 """Seconds a process gets after SIGINT, and again after SIGTERM, before the next signal."""
 
 
-def _stop_group(process: subprocess.Popen, grace: float = STOP_GRACE) -> None:
-    """SIGINT, wait, SIGTERM, wait, SIGKILL the process group of ``process``."""
-    for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, grace), (signal.SIGKILL, grace)):
-        if process.poll() is not None:
+def _stop_groups(processes: Iterable[subprocess.Popen], grace: float = STOP_GRACE) -> None:
+    """SIGINT, wait, SIGTERM, wait, SIGKILL the process groups of ``processes``, all at once.
+
+    A rospy node takes most of a second to exit after SIGINT; stopping the nodes of a
+    test together costs that once, not once per node.
+    """
+    processes = list(processes)
+    running = processes
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        running = [process for process in running if process.poll() is None]
+        if not running:
             break
+        for process in running:
+            try:
+                os.killpg(process.pid, sig)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + grace
+        for process in running:
+            try:
+                process.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                continue
+    # Children of a leader that outlived it still belong to its group.
+    for process in processes:
         try:
-            os.killpg(process.pid, sig)
+            os.killpg(process.pid, signal.SIGKILL)
         except ProcessLookupError:
-            break
-        try:
-            process.wait(wait)
-        except subprocess.TimeoutExpired:
-            continue
-    # Children of the leader that outlived it still belong to the group.
-    try:
-        os.killpg(process.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    if process.poll() is None:
-        process.wait(grace)
+            pass
+        if process.poll() is None:
+            process.wait(grace)
+
+
+def _default_sigint() -> None:
+    """In the child before it runs: SIGINT as a terminal gives it. A test run started in the
+    background (``make test &``, some CI runners) ignores SIGINT, and its children would
+    inherit that: rosmaster would sit out each stop's grace, and a bash script could not trap it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 class NodeProcess:
@@ -130,6 +154,7 @@ class NodeProcess:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             start_new_session=True,
+            preexec_fn=_default_sigint,
         )
 
     @property
@@ -165,8 +190,18 @@ class NodeProcess:
             raise WaitTimeout(message) from None
 
     def stop(self) -> None:
-        _stop_group(self.process)
+        stop_all([self])
+
+    def _close_log(self) -> None:
         self._log.close()
+
+
+def stop_all(nodes: Iterable[NodeProcess]) -> None:
+    """Stop ``nodes`` together (see :func:`_stop_groups`) and close their logs."""
+    nodes = list(nodes)
+    _stop_groups(node.process for node in nodes)
+    for node in nodes:
+        node._close_log()
 
 
 class RosMaster:
@@ -266,6 +301,35 @@ class RosMaster:
         """(publishers, subscribers, services), each a list of [name, [nodes]]."""
         return tuple(self.call('getSystemState'))
 
+    def nodes(self) -> set[str]:
+        """Names of the nodes that hold a registration (publisher, subscriber or service)."""
+        return {node for kind in self.system_state() for _, nodes in kind for node in nodes}
+
+    def snapshot(self) -> tuple[set[str], dict]:
+        """(registered nodes, parameter tree), for :meth:`restore`."""
+        return self.nodes(), self.call('getParam', '/')
+
+    def restore(self, snapshot: tuple[set[str], dict]) -> None:
+        """Unregister everything of the nodes that registered since ``snapshot`` (stopped nodes
+        killed before they could unregister leave their names behind) and set its parameters back."""
+        known, parameters = snapshot
+        publishers, subscribers, services = self.system_state()
+        with xmlrpc.client.ServerProxy(self.uri) as proxy:
+            for node in sorted(self.nodes() - known):
+                code, _, api = proxy.lookupNode(CALLER_ID, node)
+                if code != 1:
+                    continue
+                for topic, nodes in publishers:
+                    if node in nodes:
+                        proxy.unregisterPublisher(node, topic, api)
+                for topic, nodes in subscribers:
+                    if node in nodes:
+                        proxy.unregisterSubscriber(node, topic, api)
+                for service, nodes in services:
+                    if node in nodes and (uri := self.lookup_service(service)):
+                        proxy.unregisterService(node, service, uri)
+        self.call('setParam', '/', parameters)
+
     def subscriptions_of(self, node: str) -> list[str]:
         """Topic names the node ``node`` subscribes to, from the master's record."""
         return sorted(topic for topic, nodes in self.system_state()[1] if node in nodes)
@@ -274,23 +338,28 @@ class RosMaster:
 class RosHarness:
     """Owns a temporary folder, a private master and the nodes started against it.
 
-    Use as a context manager, or call :meth:`close`; the pytest fixture ``ros``
-    in ``test/conftest.py`` does it for every test.
+    With ``master``, another harness's master is used instead of starting one: this
+    harness's :meth:`close` stops its own nodes and :meth:`RosMaster.restore` s the
+    master as it found it (the master itself is the other harness's to stop, restart
+    or kill). Use as a context manager, or call :meth:`close`; the pytest fixture
+    ``ros`` in ``test/conftest.py`` does it for every test.
     """
 
-    def __init__(self, session: str | None = None, keep: bool = False):
+    def __init__(self, session: str | None = None, keep: bool = False, master: RosMaster | None = None):
         self.session = session or os.environ.get(SESSION_VARIABLE) or uuid.uuid4().hex
         self.root = Path(tempfile.mkdtemp(prefix='drvs-test-'))
         self.keep = keep
         self.nodes: list[NodeProcess] = []
         (self.root / 'ros_home').mkdir()
         (self.root / 'log').mkdir()
-        self.master: RosMaster | None = None
-        try:
-            self.master = RosMaster(self)
-        except BaseException:
-            self.close()
-            raise
+        self.master: RosMaster | None = master
+        self._found = master.snapshot() if master is not None else None
+        if master is None:
+            try:
+                self.master = RosMaster(self)
+            except BaseException:
+                self.close()
+                raise
 
     # -- environment -------------------------------------------------------------------------
     @property
@@ -385,13 +454,14 @@ class RosHarness:
 
     # -- teardown ----------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop every node (newest first), then the master; remove the folder unless kept."""
-        masters = self.master.processes if self.master is not None else []
-        for node in reversed(self.nodes):
-            if not any(node is master for master in masters):
-                node.stop()
-        for node in reversed(masters):
-            node.stop()
+        """Stop every node, then the master (or restore a shared one); remove the folder unless kept."""
+        owned = self.master is not None and self._found is None
+        masters = self.master.processes if owned else []
+        stop_all(node for node in reversed(self.nodes) if not any(node is master for master in masters))
+        if owned:
+            stop_all(reversed(masters))
+        elif self.master is not None and self.master.node.running():
+            self.master.restore(self._found)
         if not self.keep:
             shutil.rmtree(self.root, ignore_errors=True)
 

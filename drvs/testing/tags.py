@@ -9,6 +9,10 @@ it counter-clockwise. The quad is an OBJ file written next to the textures.
 The view is lit as :meth:`drvs.sim.scene.Scene.render` lights it (ambient only), so
 the array's pixels follow :data:`drvs.sim.scene.TINY_RENDERER_SAMPLE` and
 ``drvs.vision.optics.intrinsics_of(camera, TINY_RENDERER_SAMPLE)`` is its ``K``.
+
+:data:`TAGS` and :data:`CAMERAS` are the scene drvs_calibrate's tests calibrate from
+(test/unit/vision/test_calibration.py, and test/live/test_drvs_calibrate.py from a topic),
+with the helpers both use to give the command its arguments and to judge its pose.
 """
 
 from __future__ import annotations
@@ -19,10 +23,12 @@ from pathlib import Path
 
 import numpy as np
 import pybullet
+import yaml
 
 from drvs.algorithms.tag_images import quad_side, write_quad, write_tag_image
 from drvs.sim.scene import render_view
 from drvs.vision.camera import PinholeCamera
+from drvs.vision.optics import optical_pose_of
 
 FAMILY = 'tag36h11'
 FLOOR_DEPTH = 0.01
@@ -89,3 +95,79 @@ def render_floor_tags(
     finally:
         pybullet.disconnect(physicsClientId=client)
     return rgb
+
+
+TAGS = [
+    FloorTag(0, (1.0, 1.0), yaw=0.3),
+    FloorTag(1, (2.5, 1.2), yaw=1.0),
+    FloorTag(2, (1.2, 2.6), yaw=-0.5),
+    FloorTag(3, (2.8, 2.8), yaw=2.0),
+    FloorTag(4, (2.0, 2.0), yaw=0.0),
+    FloorTag(5, (0.5, 2.0), yaw=0.8),
+]
+"""Six tags on a 3 m floor."""
+CAMERAS = {
+    'from_the_south': PinholeCamera(
+        eye=(1.8, -0.6, 3.0), target=(1.9, 1.7, 0.0), fov_deg=60, width=800, height=600
+    ),
+    'from_the_north_east': PinholeCamera(
+        eye=(4.0, 3.6, 2.8), target=(2.0, 1.9, 0.0), fov_deg=60, width=800, height=600
+    ),
+    'from_the_west_turned': PinholeCamera(
+        eye=(-0.5, 1.0, 3.2), target=(1.5, 1.9, 0.0), fov_deg=60, width=800, height=600, up=(1.0, 0.0, 0.0)
+    ),
+}
+"""Three cameras that see all of :data:`TAGS`."""
+POSITION_TOLERANCE = 0.01  # metres
+ANGLE_TOLERANCE = 0.5  # degrees
+"""How close a pose calibrated from a rendered view of :data:`TAGS` must come to the camera's."""
+
+
+def tag_args(tags: list[FloorTag]) -> list[str]:
+    """drvs_calibrate's ``--tag ID:X,Y`` arguments for ``tags``."""
+    return [arg for tag in tags for arg in ('--tag', f'{tag.id}:{tag.position[0]},{tag.position[1]}')]
+
+
+def pose_errors(camera: PinholeCamera, rotation, translation) -> tuple[float, float]:
+    """(metres, degrees) between a recovered optical-frame pose and the camera's."""
+    true_rotation, true_translation = optical_pose_of(camera)
+    cosine = (np.trace(np.asarray(rotation).T @ true_rotation) - 1.0) / 2.0
+    angle = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
+    return float(np.linalg.norm(np.asarray(translation) - true_translation)), angle
+
+
+def write_camera_info(path: Path, K, size=(800, 600), distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) -> Path:
+    """A camera_calibration_parsers YAML file, as a ROS camera driver saves it."""
+    path.write_text(
+        yaml.safe_dump(
+            {
+                'image_width': int(size[0]),
+                'image_height': int(size[1]),
+                'camera_name': 'cam1',
+                'camera_matrix': {'rows': 3, 'cols': 3, 'data': [float(v) for v in np.ravel(K)]},
+                'distortion_model': 'plumb_bob',
+                'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float(d) for d in distortion]},
+                'rectification_matrix': {'rows': 3, 'cols': 3, 'data': [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
+                'projection_matrix': {
+                    'rows': 3,
+                    'cols': 4,
+                    'data': [
+                        float(K[0, 0]),
+                        0,
+                        float(K[0, 2]),
+                        0,
+                        0,
+                        float(K[1, 1]),
+                        float(K[1, 2]),
+                        0,
+                        0,
+                        0,
+                        1.0,
+                        0,
+                    ],
+                },
+            },
+            sort_keys=False,
+        )
+    )
+    return path

@@ -8,8 +8,12 @@ import yaml
 
 from drvs.testing import read_json_lines, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 FLOOR = (3.0, 3.0)
 STATION = (2.6, 1.5)
+START = (0.4, 1.5)
+NEAR = (1.8, 1.5)  # a start 0.8 m from the station, for tests that are not about the drive
 MODELS = {
     'self': 'colour:0,150,0,80,255,80',
     'station': 'colour:0,0,150,80,80,255',
@@ -18,10 +22,10 @@ MODELS = {
 }
 
 
-def write_world(root, objects):
+def write_world(root, objects, start=START):
     world = {
         'floor': {'size': list(FLOOR)},
-        'robot': {'position': [0.4, 1.5], 'size': [0.3, 0.3, 0.2], 'colour': [0, 200, 0], 'speed': 0.6},
+        'robot': {'position': list(start), 'size': [0.3, 0.3, 0.2], 'colour': [0, 200, 0], 'speed': 0.6},
         'station': {'position': list(STATION), 'size': [0.4, 0.3, 0.1], 'colour': [0, 0, 220]},
         'objects': objects,
         'vision_systems': [{'name': 'vs1', 'position': [1.5, 1.5, 3.0], 'fov_deg': 60}],
@@ -157,7 +161,7 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros, mo
     ids=['busy', 'unknown-status', 'busy-poll'],
 )
 def test_temporary_refusals_are_retried_after_retry_after_and_the_robot_arrives(ros, status, name, mode):
-    world = write_world(ros.root, [])
+    world = write_world(ros.root, [], start=NEAR)
     refusals = 6
     fake_params = {'refuse_first': refusals, 'refuse_status': status, 'refuse_retry_after': 0.3}
     fake_params['refuse_message'] = 'busy: try again later'

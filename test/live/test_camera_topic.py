@@ -17,6 +17,8 @@ from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.optics import OPENCV_OFFSET, CameraModel, optical_pose_of
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 CALLBACK = '/robot/callback_coordinates'
 BOX = [[1.6, 1.2], [2.4, 1.3], [2.35, 1.8], [1.55, 1.7]]  # a quadrilateral, turned
 BLUE = 'colour:0,0,150,80,80,255'
@@ -36,6 +38,7 @@ CAMERA = {
     'frame_id': 'cam1_optical_frame',
 }
 TOPICS = {'image': '/synthetic_camera/image_raw', 'camera_info': '/synthetic_camera/camera_info'}
+PAUSE = ['rostopic', 'pub', '/synthetic_camera/pause', 'std_msgs/Bool']
 
 
 def ask(service, algorithm, request_id, region=(0.0, 0.0, 4.0, 3.0)):
@@ -164,14 +167,16 @@ def test_a_tall_box_is_reported_where_it_stands_with_depth_and_displaced_without
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
     ros = graph
     cam1, output, _ = start(ros, vision={'stale_after': 1.0})
-    ros.run('rostopic pub -1 /synthetic_camera/pause std_msgs/Bool true', timeout=30)
+    paused = ros.spawn('pause', [*PAUSE, 'true'])  # latched until stopped (-1 would wait 3 s)
     wait_for(lambda: not registered(), 30, 'cam1 to unregister', on_timeout=ros.describe)
-    assert 'unregistered /cam1/detect_object_boundary' in cam1.log()
+    # cam1 logs it once the server's answer is in, after the server stopped routing to it
+    wait_for(lambda: 'unregistered /cam1/detect_object_boundary' in cam1.log(), 10, 'cam1 to say so')
     reply = ask('/cam1/detect_object_boundary', BLUE, 'stale')
     assert reply.status == UNAVAILABLE
     assert reply.message.startswith('/synthetic_camera/image_raw: no frame for ')
 
-    ros.run('rostopic pub -1 /synthetic_camera/pause std_msgs/Bool false', timeout=30)
+    paused.stop()
+    ros.spawn('resume', [*PAUSE, 'false'])
     wait_for(registered, 30, 'cam1 to register again', on_timeout=ros.describe)
     ask('/drvs/detect_object_boundary', BLUE, 'back')
     outline, _ = outline_of(output, 'back', ros)

@@ -15,6 +15,8 @@ from drvs.srv import RegisterVisionService
 from drvs.testing import echo, read_json_lines, wait_for
 from drvs.testing.detect import detect
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 SERVER = 'nodes/drvs_server'
 FAKE = 'test/nodes/fake_vision_system.py'
 RECORDER = 'test/nodes/callback_recorder.py'

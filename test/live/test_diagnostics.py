@@ -13,6 +13,8 @@ from drvs.common.health import ERROR, OK, WARN, Health, robot_health, server_hea
 from drvs.ros.diagnostics import DiagnosticsPublisher, health_to_status, statuses_to_array
 from drvs.testing.messages import round_trip
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 
 @pytest.mark.parametrize(
     ('ours', 'theirs'),

@@ -20,31 +20,35 @@ from drvs.tools.ask import (
     parse_args,
 )
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 STATION = 'colour:0,0,150,80,80,255'
 
 
-@pytest.fixture
-def drvs(ros: RosHarness):
-    server = ros.start_node('nodes/drvs_server', name='drvs')
-    ros.wait_for_service('/drvs/detect_object_boundary', node=server)
-    camera = ros.start_node('nodes/vision_system', name='vs2', params={'world': WORLD})
-    wait_for(
-        lambda: 'forwarded to 1 vision system' in ros.run(f'drvs_ask {STATION} --wait 0.1').stdout,
-        60,
-        'vs2 to register',
-        interval=0.5,
-        on_timeout=ros.describe,
-    )
-    assert camera.running()
-    return ros
+@pytest.fixture(scope='module')
+def drvs():
+    """The server and vs2 on a master of their own, for the tests that only ask."""
+    with RosHarness() as ros:
+        server = ros.start_node('nodes/drvs_server', name='drvs')
+        ros.wait_for_service('/drvs/detect_object_boundary', node=server)
+        camera = ros.start_node('nodes/vision_system', name='vs2', params={'world': WORLD})
+        wait_for(
+            lambda: 'forwarded to 1 vision system' in ros.run(f'drvs_ask {STATION} --wait 0.1').stdout,
+            60,
+            'vs2 to register',
+            interval=0.5,
+            on_timeout=ros.describe,
+        )
+        assert camera.running()
+        yield ros
 
 
 PAGE = Path(__file__).resolve().parents[2] / 'docs' / 'tutorials' / 'by-hand.md'
 
 
 def test_drvs_ask_prints_the_acknowledgement_and_the_outlines(drvs: RosHarness):
-    result = drvs.run(f'drvs_ask {STATION} --roi 0 0 4 3 --wait 5')
+    result = drvs.run(f'drvs_ask {STATION} --roi 0 0 4 3 --wait 2')  # it waits all of --wait
     assert result.returncode == FOUND, result.stdout + result.stderr
     lines = result.stdout.splitlines()
     assert lines[0] == "accepted: True, vision_systems: 1, message: 'forwarded to 1 vision system'"
@@ -54,7 +58,7 @@ def test_drvs_ask_prints_the_acknowledgement_and_the_outlines(drvs: RosHarness):
     bounds = lines[2].split()
     assert float(bounds[3].split('..')[0]) == pytest.approx(3.3, abs=0.03)
     assert float(bounds[5].split('..')[1]) == pytest.approx(2.65, abs=0.03)
-    assert lines[-1] == '1 of 1 vision system(s) called back within 5.0 s'
+    assert lines[-1] == '1 of 1 vision system(s) called back within 2.0 s'
 
 
 def test_drvs_ask_refuses_a_bad_algorithm_before_asking(ros: RosHarness):

@@ -28,6 +28,8 @@ from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import WaitTimeout, read_json_lines, wait_for
 from drvs.testing.reliability_log import Trial, sample_resources
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 SERVER = 'nodes/drvs_server'
 VISION_SYSTEM = 'nodes/vision_system'
 FAKE = 'test/nodes/fake_vision_system.py'

@@ -25,6 +25,8 @@ from drvs.testing.harness import echo, read_json_lines, seconds
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.pipeline import locate_objects
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WAREHOUSE, CROSSING = 'worlds/warehouse.yaml', 'worlds/crossing.yaml'
 FLEETS = [WAREHOUSE, CROSSING]
 INSIDE = 0.05

@@ -1,5 +1,7 @@
 """The harness itself: private masters, waits with deadlines, and nothing left behind."""
 
+import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -18,6 +20,24 @@ def test_each_harness_has_its_own_master_and_folders():
         assert first.env['ROS_HOME'].startswith(str(first.root))
         assert first.env['ROS_LOG_DIR'].startswith(str(first.root))
         assert first.env['ROS_MASTER_URI'] == first.master.uri
+
+
+def test_a_harness_on_a_shared_master_leaves_it_as_it_found_it():
+    with RosHarness() as owner:
+        owner.master.call('setParam', '/kept', 1)
+        with RosHarness(master=owner.master) as guest:
+            assert guest.env['ROS_MASTER_URI'] == owner.master.uri and guest.root != owner.root
+            node = guest.start_node('test/nodes/echo_detect_boundary.py', name='echo')
+            guest.wait_for_service('/echo/detect_object_boundary', node=node)
+            os.killpg(node.pid, signal.SIGKILL)  # it cannot unregister
+            node.process.wait(10)
+            guest.master.call('setParam', '/added', 2)
+            guest.master.call('setParam', '/kept', 3)
+        assert not guest.root.exists() and not node.running()
+        assert owner.master.lookup_service('/echo/detect_object_boundary') is None
+        assert owner.master.nodes() == set()
+        assert owner.master.call('getParam', '/') == {'kept': 1}
+        assert owner.master.node.running()
 
 
 def test_wait_for_service_shows_the_log_of_a_node_that_died(ros: RosHarness):
@@ -60,7 +80,7 @@ def test_nothing_is_left_behind_when_tests_fail_or_time_out(tmp_path):
     (tmp_path / 'conftest.py').write_text((REPO / 'test/conftest.py').read_text())
     session = uuid.uuid4().hex
     # The stubborn grandchild ignores SIGINT and SIGTERM: a short grace gets to SIGKILL sooner.
-    env = {**__import__('os').environ, SESSION_VARIABLE: session, 'DRVS_TEST_STOP_GRACE': '1'}
+    env = {**os.environ, SESSION_VARIABLE: session, 'DRVS_TEST_STOP_GRACE': '1'}
     result = subprocess.run(
         [
             sys.executable,

@@ -88,6 +88,8 @@ from drvs.server.spatial_index import interiors_intersect
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
 from drvs.testing import reliability_log, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 # -- properties of the pure checks ---------------------------------------------------------------
 
 

@@ -14,6 +14,8 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
@@ -275,10 +277,13 @@ def test_a_prefix_in_use_is_refused_and_left_alone(hosts: NetworkHosts):
     assert hosts.leftovers() == [hosts.prefix]
 
 
-def check(env: dict | None = None, user: list[str] = ()) -> subprocess.CompletedProcess:
+def check(
+    env: dict | None = None, user: list[str] = (), library: Path = HOSTS_SH
+) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [*user, shutil.which('bash'), '-c', 'source "$0"; hosts_check', str(HOSTS_SH)],
+        [*user, shutil.which('bash'), '-c', 'source "$0"; hosts_check', str(library)],
         env={**os.environ, **(env or {})},
+        cwd=library.parent,
         capture_output=True,
         text=True,
     )
@@ -290,7 +295,15 @@ def test_check_names_a_missing_ip_command():
 
 
 def test_check_names_a_missing_root():
-    user = ['setpriv', '--reuid=65534', '--regid=65534', '--clear-groups'] if os.geteuid() == 0 else []
-    result = check(user=user)
-    uid = 65534 if user else os.geteuid()
+    if os.geteuid() != 0:
+        result, uid = check(), os.geteuid()
+    else:  # as nobody, who may not read a checkout in root's home: a world-readable copy of the library
+        with tempfile.TemporaryDirectory() as folder:
+            os.chmod(folder, 0o755)
+            library = Path(shutil.copy(HOSTS_SH, folder))
+            os.chmod(library, 0o644)
+            result = check(
+                user=['setpriv', '--reuid=65534', '--regid=65534', '--clear-groups'], library=library
+            )
+        uid = 65534
     assert (result.returncode, result.stdout) == (1, f'network namespaces need root (running as uid {uid})\n')

@@ -42,6 +42,8 @@ from drvs.srv import DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import WaitTimeout, read_json_lines, reliability_log, wait_for
 from drvs.testing.reliability_log import Resources, Trial, sample_resources
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 SERVER = 'nodes/drvs_server'
 VISION_SYSTEM = 'nodes/vision_system'
 RECORDER = 'test/nodes/callback_recorder.py'

@@ -26,6 +26,8 @@ from drvs.testing.detect import detect
 from drvs.testing.harness import parse_echo
 from drvs.vision.frame import Frame
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 REPO = Path(__file__).resolve().parents[2]
 PLUGIN = REPO / 'test' / 'plugin_example'
 DISTRIBUTION = 'drvs-example-plugin'
@@ -214,7 +216,7 @@ def test_a_vision_system_runs_the_plugin_and_the_server_checks_its_parameters(pl
 
     # The label, as a user sees it (drvs_ask prints each object's label before its bounds).
     roi = ' '.join(str(v) for v in CRATE_REGION)
-    result = ros.run(f'drvs_ask dark:100 --roi {roi} --wait 5')
+    result = ros.run(f'drvs_ask dark:100 --roi {roi} --wait 2')  # it waits all of --wait
     assert result.returncode == 0, result.stdout + result.stderr
     assert [line.split()[:2] for line in result.stdout.splitlines() if line.startswith('  [')] == [
         ['[0]', 'dark']

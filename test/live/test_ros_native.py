@@ -25,6 +25,8 @@ from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.optics import optical_pose_of
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
 LINE_STRIP, DELETEALL = 4, 3  # visualization_msgs/Marker type and action
@@ -172,10 +174,10 @@ def test_a_topic_camera_whose_feed_stops_reports_an_error(graph):
 
 
 def test_the_blind_robot_reports_its_state_and_echo_shows_its_status(ros):
-    from test_blind_robot import start, write_world
+    from test_blind_robot import NEAR, start, write_world
 
     diagnostics = start_recorder(ros, '/diagnostics')
-    start(ros, write_world(ros.root, []), robot_params={'once': False})
+    start(ros, write_world(ros.root, [], start=NEAR), robot_params={'once': False})
     status = wait_status(
         ros, diagnostics, 'drvs: /robot', lambda s: s['values']['state'] == 'arrived', 'arrived', timeout=60
     )

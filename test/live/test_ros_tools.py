@@ -4,6 +4,8 @@ import pytest
 
 from drvs.testing import RosHarness
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 STATUS_CONSTANTS = [
     'uint8 ACCEPTED=0',
     'uint8 INVALID=1',

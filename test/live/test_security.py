@@ -42,6 +42,8 @@ from drvs.srv import DetectObjectBoundary, RegisterVisionService
 from drvs.testing import wait_for
 from drvs.testing.harness import REPO
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 DETECT = '/drvs/detect_object_boundary'
 REGISTER = '/drvs/register_vision_service'
 VS1 = '/vs1/detect_object_boundary'

@@ -12,6 +12,8 @@ from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, RegisterVisionService
 from drvs.testing import echo, points, read_json_lines, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 SERVER = 'nodes/drvs_server'
 FAKE = 'test/nodes/fake_vision_system.py'
 RECORDER = 'test/nodes/callback_recorder.py'

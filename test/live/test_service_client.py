@@ -11,6 +11,8 @@ from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient, 
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, DetectObjectBoundaryRequest
 from drvs.testing import wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 ECHO = 'test/nodes/echo_detect_boundary.py'
 FAKE = 'test/nodes/fake_vision_system.py'
 

@@ -40,6 +40,8 @@ from drvs.testing import read_json_lines, wait_for
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.optics import intrinsics_of, optical_pose_of
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 LENS_WORLD = 'test/worlds/small_lens.yaml'
 DISTORTION = [-0.2, 0.05, 0.001, -0.001, 0.0]  # vs1's in LENS_WORLD

@@ -6,11 +6,14 @@ agree with the vision system that renders its own view, and, through a lens,
 still lie where the objects are.
 """
 
+import pytest
 from shapely.geometry import Polygon
 
 from drvs.sim.world_file import load_world
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
+
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
 
 CALLBACK = '/robot/callback_coordinates'
 

@@ -14,6 +14,8 @@ from drvs.ros.service_client import ServiceClient
 from drvs.srv import WatchObjectBoundary
 from drvs.testing import echo, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WATCH = '/drvs/watch_object_boundary'
 ROBOT = '/robot_test'  # the test's caller id: watches are keyed by it
 BOTH = (0.5, 0.5, 3.5, 1.5)  # meets vw's square(0, 0, 2, 2) and vp's square(2, 0, 4, 2)

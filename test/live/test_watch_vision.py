@@ -12,6 +12,8 @@ from drvs.srv import (
 )
 from drvs.testing import echo, read_json_lines, wait_for
 
+pytestmark = pytest.mark.shared_master  # see test/conftest.py
+
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
 SERVICE = '/vs1/watch_object_boundary'

@@ -21,7 +21,7 @@ from test_record import drvs_report
 
 from drvs.sim.report import SERVER_FIGURES
 from drvs.sim.world_file import load_world
-from drvs.testing import RosHarness, wait_for
+from drvs.testing import NodeProcess, RosHarness, wait_for
 from drvs.testing.harness import REPO
 from drvs.testing.netns import namespaces_of, unavailable
 
@@ -53,16 +53,27 @@ class Run(NamedTuple):
     pid: int  # its process id
 
 
-def run_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> Run:
-    """Run ``run_scenario.sh world options`` into a folder of the harness's, to its end.
+class Started(NamedTuple):
+    runner: NodeProcess  # run_scenario.sh, still running
+    out: Path  # its DIR
+    timeout: float  # its --timeout
+
+
+def start_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> Started:
+    """``run_scenario.sh world options`` started into a folder of the harness's.
 
     Without ``--hosts`` against the harness's master (``--external-master``).
     """
     out = ros.root / f'out{len(ros.nodes)}'
     master = [] if '--hosts' in options else ['--external-master']
     argv = ['bash', 'scripts/run_scenario.sh', world, *master, *options, '--timeout', str(timeout)]
-    runner = ros.spawn('run_scenario', [*argv, '--out', str(out)])
-    wait_for(lambda: not runner.running(), timeout + 90, f'run_scenario.sh {world}', interval=0.5)
+    return Started(ros.spawn('run_scenario', [*argv, '--out', str(out)]), out, timeout)
+
+
+def finish_scenario(started: Started, world: str) -> Run:
+    """Wait for a started run to end; its :class:`Run`, its output checked."""
+    runner, out = started.runner, started.out
+    wait_for(lambda: not runner.running(), started.timeout + 90, f'run_scenario.sh {world}', interval=0.5)
     logs = runner.describe() + ''.join(
         f'\n--- {log.name} ---\n{log.read_text(errors="replace")[-1500:]}'
         for log in sorted(out.glob('*.log'))
@@ -72,6 +83,11 @@ def run_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 15
     assert (out / 'run.png').read_bytes()[:4] == b'\x89PNG'
     summary = json.loads((out / 'summary.json').read_text())
     return Run(runner.process.returncode, summary, logs, out, runner.pid)
+
+
+def run_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> Run:
+    """Run ``run_scenario.sh world options`` into a folder of the harness's, to its end."""
+    return finish_scenario(start_scenario(ros, world, *options, timeout=timeout), world)
 
 
 def check_fleet_summary(summary: dict, world: str, logs: str) -> None:
@@ -111,16 +127,20 @@ def server_calls(summary: dict) -> int:
 def crossing():
     """``crossing(requests)``: the crossing world's run with ``--requests requests``, made once
     per module (the rows test, the comparison and the network hosts test share them). The
-    watch run is the one across network hosts, where they can be made here."""
+    watch run is the one across network hosts, where they can be made here. Both start at
+    once (a run mostly waits for its robots to drive, and two fit on two cores)."""
     with RosHarness() as ros:
+        started = {}
+        for requests in ('watch', 'poll'):
+            options = ['--requests', requests]
+            if requests == 'watch' and not unavailable():
+                options += ['--hosts', '--robot-link', '2mbit']
+            started[requests] = start_scenario(ros, CROSSING, *options)
         runs = {}
 
         def run(requests: str) -> Run:
             if requests not in runs:
-                options = ['--requests', requests]
-                if requests == 'watch' and not unavailable():
-                    options += ['--hosts', '--robot-link', '2mbit']
-                runs[requests] = run_scenario(ros, CROSSING, *options)
+                runs[requests] = finish_scenario(started[requests], CROSSING)
             return runs[requests]
 
         yield run

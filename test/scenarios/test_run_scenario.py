@@ -144,29 +144,61 @@ def test_stop_scenario_removes_the_network_hosts_a_killed_run_left(tmp_path):
         hosts_call('hosts_cleanup', prefix=prefix)
 
 
-def test_external_master_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
-    uri = f'http://127.0.0.1:{free_port()}/'  # nothing listens there
-    result = run([SCRIPT, WORLD, '--external-master', '--out', str(tmp_path)], {'ROS_MASTER_URI': uri}, 30)
+def start_script(argv: list[str], env: dict) -> subprocess.Popen:
+    """A script of the repository started in a session of its own (:func:`run`, not awaited)."""
+    return subprocess.Popen(
+        ['bash', *argv],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def finished(process: subprocess.Popen) -> subprocess.CompletedProcess:
+    stdout, stderr = process.communicate(timeout=30)
+    return subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+
+
+@pytest.fixture(scope='module')
+def without_master(tmp_path_factory):
+    """``case -> (result, out, ROS_MASTER_URI)`` of the runs with ``--external-master`` and no master
+    there: each waits 3 s for one, so they start at once. Cases: ``silent`` (nothing listens at
+    the URI), ``unset`` (no ROS_MASTER_URI: env.sh's default), ``stale`` (a pids file of a run
+    whose processes are gone, in DIR)."""
+    gone = subprocess.Popen(['true'])
+    gone.wait()
+    runs = {}
+    for case in ('silent', 'unset', 'stale'):
+        out = tmp_path_factory.mktemp(case)
+        uri = f'http://127.0.0.1:{free_port()}/'  # nothing listens there
+        env = {**os.environ, 'ROS_MASTER_URI': uri}
+        if case == 'unset':
+            del env['ROS_MASTER_URI']
+        if case == 'stale':
+            (out / 'pids').write_text(
+                f'{gone.pid} {gone.pid} 1 run_scenario\n{gone.pid} {gone.pid} 1 robot\n'
+            )
+        runs[case] = start_script([SCRIPT, WORLD, '--external-master', '--out', str(out)], env), out, uri
+    return {case: (finished(process), out, uri) for case, (process, out, uri) in runs.items()}
+
+
+def test_external_master_that_does_not_answer_is_one_line_and_exit_2(without_master):
+    result, out, uri = without_master['silent']
     assert result.returncode == 2
     assert result.stdout == ''
     assert result.stderr == (
         f'run_scenario: --external-master: no ROS master answers at {uri}; start roscore there, or point '
         'ROS_MASTER_URI at a running master (without --external-master this script starts its own)\n'
     )
-    assert not (tmp_path / 'pids').exists()
+    assert not (out / 'pids').exists()
 
 
-def test_external_master_without_ros_master_uri_names_env_sh_default(tmp_path):
-    env = {key: value for key, value in os.environ.items() if key != 'ROS_MASTER_URI'}
-    result = subprocess.run(
-        ['bash', SCRIPT, WORLD, '--external-master', '--out', str(tmp_path)],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=30,
-        start_new_session=True,
-    )
+def test_external_master_without_ros_master_uri_names_env_sh_default(without_master):
+    result, _, _ = without_master['unset']
     if 'no ROS master answers' not in result.stderr:
         pytest.skip(f'a master answers at the default http://127.0.0.1:11311 here: {result.stderr}')
     assert result.returncode == 2
@@ -177,16 +209,12 @@ def test_external_master_without_ros_master_uri_names_env_sh_default(tmp_path):
     assert result.stderr.count('\n') == 1 and 'Traceback' not in result.stderr
 
 
-def test_a_stale_pids_file_is_replaced(tmp_path):
-    gone = subprocess.Popen(['true'])
-    gone.wait()
-    (tmp_path / 'pids').write_text(f'{gone.pid} {gone.pid} 1 run_scenario\n{gone.pid} {gone.pid} 1 robot\n')
-    uri = f'http://127.0.0.1:{free_port()}/'
-    result = run([SCRIPT, WORLD, '--external-master', '--out', str(tmp_path)], {'ROS_MASTER_URI': uri}, 30)
+def test_a_stale_pids_file_is_replaced(without_master):
+    result, out, uri = without_master['stale']
     # Past the check of DIR: the run fails on the master, as it would in an unused DIR.
     assert result.returncode == 2
     assert result.stderr.startswith(f'run_scenario: --external-master: no ROS master answers at {uri};')
-    assert not (tmp_path / 'pids').exists()
+    assert not (out / 'pids').exists()
 
 
 def test_stop_scenario_stops_what_is_listed_escalating_and_spares_a_reused_pid(tmp_path):
@@ -281,7 +309,14 @@ def test_stop_scenario_cleans_up_after_a_killed_run_and_a_second_run_is_refused(
 
     os.kill(runner.pid, signal.SIGKILL)  # the script only, not its process group
     runner.process.wait(10)
-    time.sleep(1.0)
+    killed = time.time_ns()
+    # The run goes on without its script: the recorder writes status.line again (every 0.5 s).
+    wait_for(
+        lambda: (out / 'status.line').stat().st_mtime_ns > killed,
+        20,
+        'the recorder to write status.line after the script was killed',
+        on_timeout=lambda: (out / 'recorder.log').read_text(errors='replace'),
+    )
     assert all(runs(pid, start) for pid, start, _ in nodes), 'a node died with its script'
     second = run([SCRIPT, WORLD, '--out', str(out)])
     assert second.returncode == 2

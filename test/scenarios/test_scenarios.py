@@ -1,10 +1,13 @@
 """The paper's case study end to end (section 4): one run of scripts/run_scenario.sh per world.
 
 Each test runs the real thing — rosmaster, drvs_server, world_sim, a vision_system
-per camera, the recorder and blind_robot — against the test's private master
-(``--external-master``), then checks the summary and the ground truth it recorded.
+per camera, the recorder and blind_robot — against a private master
+(``--external-master``), then checks the summary and the ground truth it recorded. The
+obstacles and selectivity runs of ``make test`` start together (``together``), each on a
+master of its own; the tags run and the slow variants run one at a time.
 """
 
+import contextlib
 import json
 import math
 
@@ -13,17 +16,17 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.ros.robot import RobotParams
 from drvs.sim.world_file import load_world
-from drvs.testing import RosHarness, wait_for
+from drvs.testing import NodeProcess, RosHarness, wait_for
 from drvs.vision.camera import PinholeCamera
 
 SCENARIO_TIMEOUT = 150
 
 
-def run_scenario(
+def start_scenario(
     ros: RosHarness, world: str, camera_source: str = 'render', requests: str = 'watch'
-) -> tuple[int, dict, dict, str]:
-    out = ros.root / 'out'
-    runner = ros.spawn(
+) -> NodeProcess:
+    """``scripts/run_scenario.sh world`` started against the harness's master, into its folder."""
+    return ros.spawn(
         'run_scenario',
         [
             'bash',
@@ -33,13 +36,18 @@ def run_scenario(
             '--timeout',
             str(SCENARIO_TIMEOUT),
             '--out',
-            str(out),
+            str(ros.root / 'out'),
             '--camera-source',
             camera_source,
             '--requests',
             requests,
         ],
     )
+
+
+def finish_scenario(ros: RosHarness, runner: NodeProcess, world: str) -> tuple[int, dict, dict, str]:
+    """Wait for a started run to end; its (exit code, summary, trace, logs), its output checked."""
+    out = ros.root / 'out'
     wait_for(
         lambda: not runner.running(),
         SCENARIO_TIMEOUT + 60,
@@ -65,6 +73,50 @@ def run_scenario(
     assert not (out / 'pids').exists(), 'DIR/pids left after the run'
     assert (out / 'run.png').read_bytes()[:4] == b'\x89PNG'
     return code, json.loads(summary_path.read_text()), json.loads((out / 'trace.json').read_text()), logs
+
+
+def run_scenario(
+    ros: RosHarness, world: str, camera_source: str = 'render', requests: str = 'watch'
+) -> tuple[int, dict, dict, str]:
+    return finish_scenario(ros, start_scenario(ros, world, camera_source, requests), world)
+
+
+TOGETHER = {
+    'obstacles': ('worlds/obstacles.yaml', 'render', 'watch'),
+    'selectivity': ('worlds/selectivity.yaml', 'render', 'watch'),
+}
+"""Runs of the default suite that start at once: (world, camera source, requests). Each is
+half a minute of mostly waiting for its robot to drive, at about half a core; the tags
+scenario (nearly a core for its tag detection) runs alone: with others on two cores its
+cameras lose the robot."""
+
+
+@pytest.fixture(scope='module')
+def together():
+    """``finished(name)``: the result of a run of :data:`TOGETHER`, all of which start at once,
+    each on a master of its own, and end in about the time of the longest."""
+    with contextlib.ExitStack() as stack:
+        started = {}
+        for name, (world, camera_source, requests) in TOGETHER.items():
+            ros = stack.enter_context(RosHarness())
+            started[name] = ros, start_scenario(ros, world, camera_source, requests)
+        results = {}
+
+        def finished(name: str) -> tuple[int, dict, dict, str]:
+            if name not in results:
+                ros, runner = started[name]
+                results[name] = finish_scenario(ros, runner, TOGETHER[name][0])
+            return results[name]
+
+        yield finished
+
+
+def scenario(request, name: str, camera_source: str) -> tuple[int, dict, dict, str]:
+    """A run of :data:`TOGETHER` with ``camera_source``: the shared one, or (a slow variant) its own."""
+    world, shared_source, requests = TOGETHER[name]
+    if camera_source == shared_source:
+        return request.getfixturevalue('together')(name)
+    return run_scenario(request.getfixturevalue('ros'), world, camera_source, requests)
 
 
 @pytest.mark.parametrize(
@@ -111,9 +163,9 @@ def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarne
 @pytest.mark.parametrize(
     'camera_source', ['render', pytest.param('topic', marks=pytest.mark.slow, id='topic')]
 )
-def test_obstacles_robot_replans_round_the_human_without_collision(ros: RosHarness, camera_source):
+def test_obstacles_robot_replans_round_the_human_without_collision(request, camera_source):
     world = load_world('worlds/obstacles.yaml')
-    code, summary, trace, logs = run_scenario(ros, 'worlds/obstacles.yaml', camera_source)
+    code, summary, trace, logs = scenario(request, 'obstacles', camera_source)
     assert code == 0, logs
     assert summary['reached'] is True
     assert summary['collisions'] == 0
@@ -133,9 +185,9 @@ def test_obstacles_robot_replans_round_the_human_without_collision(ros: RosHarne
 @pytest.mark.parametrize(
     'camera_source', ['render', pytest.param('topic', marks=pytest.mark.slow, id='topic')]
 )
-def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(ros: RosHarness, camera_source):
+def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(request, camera_source):
     world = load_world('worlds/selectivity.yaml')
-    code, summary, trace, logs = run_scenario(ros, 'worlds/selectivity.yaml', camera_source)
+    code, summary, trace, logs = scenario(request, 'selectivity', camera_source)
     assert code == 0, logs
     cameras = summary['vision_systems']
     models = world.colour_models

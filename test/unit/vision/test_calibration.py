@@ -5,9 +5,10 @@ so the true pose is the PinholeCamera's and the image's K is
 ``intrinsics_of(camera, TINY_RENDERER_SAMPLE)``.
 """
 
+import contextlib
 import doctest
+import io
 import json
-import math
 import os
 import re
 import subprocess
@@ -21,36 +22,25 @@ import yaml
 
 from drvs.sim.scene import TINY_RENDERER_SAMPLE
 from drvs.sim.world_file import load_world
-from drvs.testing import RosHarness, free_port
+from drvs.testing import free_port
 from drvs.testing.harness import REPO
-from drvs.testing.tags import FloorTag, render_floor_tags
-from drvs.tools.calibrate import sibling_camera_info
+from drvs.testing.tags import (
+    ANGLE_TOLERANCE,
+    CAMERAS,
+    POSITION_TOLERANCE,
+    TAGS,
+    FloorTag,
+    pose_errors,
+    render_floor_tags,
+    tag_args,
+    write_camera_info,
+)
+from drvs.tools.calibrate import calibrate, parse_args, sibling_camera_info
 from drvs.vision import calibration
 from drvs.vision.calibration import CalibrationError, FloorPoint, Intrinsics
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.optics import OPENCV_OFFSET, intrinsics_of, optical_pose_of
 
-TAGS = [
-    FloorTag(0, (1.0, 1.0), yaw=0.3),
-    FloorTag(1, (2.5, 1.2), yaw=1.0),
-    FloorTag(2, (1.2, 2.6), yaw=-0.5),
-    FloorTag(3, (2.8, 2.8), yaw=2.0),
-    FloorTag(4, (2.0, 2.0), yaw=0.0),
-    FloorTag(5, (0.5, 2.0), yaw=0.8),
-]
-CAMERAS = {
-    'from_the_south': PinholeCamera(
-        eye=(1.8, -0.6, 3.0), target=(1.9, 1.7, 0.0), fov_deg=60, width=800, height=600
-    ),
-    'from_the_north_east': PinholeCamera(
-        eye=(4.0, 3.6, 2.8), target=(2.0, 1.9, 0.0), fov_deg=60, width=800, height=600
-    ),
-    'from_the_west_turned': PinholeCamera(
-        eye=(-0.5, 1.0, 3.2), target=(1.5, 1.9, 0.0), fov_deg=60, width=800, height=600, up=(1.0, 0.0, 0.0)
-    ),
-}
-POSITION_TOLERANCE = 0.01  # metres
-ANGLE_TOLERANCE = 0.5  # degrees
 COMMAND = [sys.executable, str(REPO / 'nodes/drvs_calibrate')]
 
 
@@ -63,22 +53,24 @@ def intrinsics_args(K) -> list[str]:
     return ['--fx', repr(K[0, 0]), '--fy', repr(K[1, 1]), '--cx', repr(K[0, 2]), '--cy', repr(K[1, 2])]
 
 
-def tag_args(tags) -> list[str]:
-    return [arg for tag in tags for arg in ('--tag', f'{tag.id}:{tag.position[0]},{tag.position[1]}')]
-
-
-def pose_errors(camera, rotation, translation) -> tuple[float, float]:
-    """(metres, degrees) between a recovered optical-frame pose and the camera's."""
-    true_rotation, true_translation = optical_pose_of(camera)
-    cosine = (np.trace(np.asarray(rotation).T @ true_rotation) - 1.0) / 2.0
-    angle = math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-    return float(np.linalg.norm(np.asarray(translation) - true_translation)), angle
-
-
-def run(*args, env=None, timeout=60) -> subprocess.CompletedProcess:
+def run_command(*args, env=None, timeout=60) -> subprocess.CompletedProcess:
+    """nodes/drvs_calibrate ``args``, run as a user runs it."""
     return subprocess.run(
         [*COMMAND, *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=timeout, env=env
     )
+
+
+def run(*args) -> subprocess.CompletedProcess:
+    """drvs_calibrate ``args`` in this process, from the repository (what nodes/drvs_calibrate does
+    but for starting Python: its exit code, stdout and stderr), for the many image-file cases;
+    :func:`run_command` runs the command itself."""
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.chdir(REPO), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = calibrate(parse_args(list(map(str, args))))
+        except SystemExit as exit_:  # argparse's refusals
+            code = exit_.code
+    return subprocess.CompletedProcess(['drvs_calibrate', *args], code, stdout.getvalue(), stderr.getvalue())
 
 
 @pytest.fixture(scope='module')
@@ -169,7 +161,7 @@ def test_a_distorted_camera_is_recovered_from_points_on_the_command_line(tmp_pat
     assert np.abs(pixels.reshape(-1, 2) - ideal).max() > 20.0  # the lens matters
     points = [f'{u!r},{v!r}:{x},{y}' for (u, v), (x, y) in zip(pixels.reshape(-1, 2), floor, strict=True)]
     output = tmp_path / 'pose.json'
-    result = run(
+    result = run_command(
         '--image',
         blank_image(tmp_path),
         *intrinsics_args(K),
@@ -317,43 +309,6 @@ def test_intrinsics_from_a_camera_info_yaml_file(views, tmp_path):
     pose = json.loads(output.read_text())
     position_error, angle_error = pose_errors(camera, pose['rotation'], pose['position'])
     assert position_error <= POSITION_TOLERANCE and angle_error <= ANGLE_TOLERANCE
-
-
-def write_camera_info(path, K, size=(800, 600), distortion=(0.0, 0.0, 0.0, 0.0, 0.0)):
-    """A camera_calibration_parsers YAML file, as a ROS camera driver saves it."""
-    path.write_text(
-        yaml.safe_dump(
-            {
-                'image_width': int(size[0]),
-                'image_height': int(size[1]),
-                'camera_name': 'cam1',
-                'camera_matrix': {'rows': 3, 'cols': 3, 'data': [float(v) for v in np.ravel(K)]},
-                'distortion_model': 'plumb_bob',
-                'distortion_coefficients': {'rows': 1, 'cols': 5, 'data': [float(d) for d in distortion]},
-                'rectification_matrix': {'rows': 3, 'cols': 3, 'data': [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
-                'projection_matrix': {
-                    'rows': 3,
-                    'cols': 4,
-                    'data': [
-                        float(K[0, 0]),
-                        0,
-                        float(K[0, 2]),
-                        0,
-                        0,
-                        float(K[1, 1]),
-                        float(K[1, 2]),
-                        0,
-                        0,
-                        0,
-                        1.0,
-                        0,
-                    ],
-                },
-            },
-            sort_keys=False,
-        )
-    )
-    return path
 
 
 # -- refusals ---------------------------------------------------------------------------------------
@@ -544,53 +499,12 @@ def test_sibling_camera_info():
     assert sibling_camera_info('image_raw') == 'camera_info'
 
 
-# -- from a running graph ---------------------------------------------------------------------------
-def test_calibrates_from_a_camera_topic_and_its_camera_info(ros: RosHarness, views):
-    camera = CAMERAS['from_the_north_east']
-    K = intrinsics_of(camera, TINY_RENDERER_SAMPLE)
-    info = write_camera_info(ros.root / 'cam1.yaml', K)
-    params = {'image': views['from_the_north_east'], 'camera_info': info, 'frame_id': 'cam1_optical'}
-    driver = ros.start_node('test/nodes/still_camera.py', name='cam1', params=params)
-    output = ros.root / 'pose.json'
-    result = ros.run(
-        f'{sys.executable} nodes/drvs_calibrate --topic /cam1/image_raw {" ".join(tag_args(TAGS))} '
-        f'--timeout 30 --json {output}',
-        timeout=60,
-    )
-    assert (result.returncode, result.stderr) == (0, ''), result.stderr + ros.describe()
-    assert driver.running()
-    pose = json.loads(output.read_text())
-    assert pose['frame'] == 'cam1_optical'  # the image's frame_id
-    assert pose['command'].endswith(' map cam1_optical')
-    assert np.asarray(pose['intrinsics']['K']) == pytest.approx(K)  # from /cam1/camera_info
-    position_error, angle_error = pose_errors(camera, pose['rotation'], pose['position'])
-    assert position_error <= POSITION_TOLERANCE and angle_error <= ANGLE_TOLERANCE
-
-    # An image file with the intrinsics (and the frame) of a CameraInfo topic.
-    result = ros.run(
-        f'{sys.executable} nodes/drvs_calibrate --image {views["from_the_north_east"]} '
-        f'--camera-info /cam1/camera_info {" ".join(tag_args(TAGS))} --timeout 30 --json {output}',
-        timeout=60,
-    )
-    assert (result.returncode, result.stderr) == (0, ''), result.stderr + ros.describe()
-    again = json.loads(output.read_text())
-    assert again['frame'] == 'cam1_optical'
-    assert again['position'] == pytest.approx(pose['position'], abs=1e-9)
-
-
-def test_a_topic_nobody_publishes_times_out_with_a_clear_message(ros: RosHarness):
-    result = ros.run(f'{sys.executable} nodes/drvs_calibrate --topic /cam9/image_raw --tag 0:1,1 --timeout 1')
-    assert (result.returncode, result.stdout) == (2, '')
-    assert result.stderr == (
-        'drvs_calibrate: error: no sensor_msgs/Image on /cam9/image_raw within 1 s (no publisher; '
-        'sensor_msgs/Image topics: none): is the camera running? (rostopic hz /cam9/image_raw)\n'
-    )
-
-
 def test_without_a_master_the_topic_mode_fails_at_once(tmp_path):
     env = {**os.environ, 'ROS_HOME': str(tmp_path), 'ROS_MASTER_URI': f'http://127.0.0.1:{free_port()}'}
     start = time.monotonic()
-    result = run('--topic', '/cam1/image_raw', '--tag', '0:1,1', '--timeout', '5', env=env, timeout=30)
+    result = run_command(
+        '--topic', '/cam1/image_raw', '--tag', '0:1,1', '--timeout', '5', env=env, timeout=30
+    )
     assert time.monotonic() - start < 5
     assert (result.returncode, result.stdout) == (2, '')
     assert re.fullmatch(
