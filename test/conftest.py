@@ -6,10 +6,8 @@ is stopped at teardown, also when the test fails or times out. In a module marke
 ``shared_master`` (``pytestmark = pytest.mark.shared_master``) the tests share the
 master of ``module_ros`` instead: each test's harness still has its own folder and
 nodes, and leaves the master as it found it (the nodes that registered since are
-forgotten, the parameters set back). Nodes a module starts on ``module_ros`` itself
-(a module-scoped fixture: a stack its tests only read) run until the module ends.
-``graph``: ``ros``, with this process's environment pointing at that master, so the
-test can call services itself.
+forgotten, the parameters set back). ``graph``: ``ros``, with this process's
+environment pointing at that master, so the test can call services itself.
 """
 
 import os

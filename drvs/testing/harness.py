@@ -339,9 +339,9 @@ class RosHarness:
     """Owns a temporary folder, a private master and the nodes started against it.
 
     With ``master``, another harness's master is used instead of starting one: this
-    harness's :meth:`close` stops its own nodes and :meth:`RosMaster.restore` s the
-    master as it found it (the master itself is the other harness's to stop, restart
-    or kill). Use as a context manager, or call :meth:`close`; the pytest fixture
+    harness's :meth:`close` stops its own nodes and leaves the master as it found it
+    (:meth:`RosMaster.restore`); the master itself is the other harness's to stop,
+    restart or kill. Use as a context manager, or call :meth:`close`; the pytest fixture
     ``ros`` in ``test/conftest.py`` does it for every test.
     """
 

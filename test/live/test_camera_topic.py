@@ -48,6 +48,8 @@ def ask(service, algorithm, request_id, region=(0.0, 0.0, 4.0, 3.0)):
 def start(ros, camera=None, vision=None, remap=None):
     """The server, the test's camera, a topic-fed vision system cam1 and a callback recorder."""
     server = ros.start_node('nodes/drvs_server', name='drvs', params={'lease': 2.0})
+    output = ros.root / 'callbacks.jsonl'
+    recorder = ros.start_node('test/nodes/callback_recorder.py', name='recorder', params={'output': output})
     ros.wait_for_service('/drvs/detect_object_boundary', node=server)
     stamps = ros.root / 'stamps.txt'
     ros.start_node(
@@ -62,8 +64,6 @@ def start(ros, camera=None, vision=None, remap=None):
         remap=remap or TOPICS,
         env=without_pybullet(ros),
     )
-    output = ros.root / 'callbacks.jsonl'
-    recorder = ros.start_node('test/nodes/callback_recorder.py', name='recorder', params={'output': output})
     ros.wait_for_service(CALLBACK, node=recorder)
     wait_for(lambda: registered(), 30, 'cam1 to register its field of view', on_timeout=ros.describe)
     return cam1, output, stamps

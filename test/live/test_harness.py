@@ -40,6 +40,25 @@ def test_a_harness_on_a_shared_master_leaves_it_as_it_found_it():
         assert owner.master.node.running()
 
 
+def test_a_harness_in_a_run_that_ignores_sigint_still_stops_its_master_at_once():
+    """A run started in the background (``make test &``) ignores SIGINT; the harness's children must not."""
+    code = textwrap.dedent(
+        """
+        import signal, time
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        from drvs.testing import RosHarness
+        harness = RosHarness()
+        started = time.monotonic()
+        harness.close()
+        print(time.monotonic() - started)
+        """
+    )
+    env = {**os.environ, 'DRVS_TEST_STOP_GRACE': '10'}
+    result = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert float(result.stdout) < 5, 'the master sat out the grace after SIGINT'
+
+
 def test_wait_for_service_shows_the_log_of_a_node_that_died(ros: RosHarness):
     node = ros.spawn('dies', [sys.executable, '-c', 'print("boom: no such camera"); raise SystemExit(3)'])
     with pytest.raises(WaitTimeout, match='boom: no such camera'):

@@ -6,7 +6,6 @@ promises; nothing here looks at a time.
 
 import json
 import math
-import subprocess
 import sys
 import types
 
@@ -28,20 +27,14 @@ TARGETS = {
 
 
 @pytest.fixture(scope='module')
-def tiny(tmp_path_factory):
-    """One run of every section at tiny size: (exit code, latest.json, latest.md, out folder, stderr)."""
-    out = tmp_path_factory.mktemp('bench')
-    work = tmp_path_factory.mktemp('bench-work')
-    result = subprocess.run(
-        [sys.executable, '-m', 'bench.run', '--size', 'tiny', '--out', str(out), '--work', str(work)],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
+def tiny(tiny_bench):
+    """One run of every section at tiny size (started in the background: test/project/conftest.py):
+    (exit code, latest.json, latest.md, out folder, stdout and stderr)."""
+    code, output = tiny_bench.wait(240)
+    out = tiny_bench.out
     report = json.loads((out / 'latest.json').read_text()) if (out / 'latest.json').exists() else {}
     text = (out / 'latest.md').read_text() if (out / 'latest.md').exists() else ''
-    return result.returncode, report, text, out, result.stdout + result.stderr
+    return code, report, text, out, output
 
 
 def test_every_section_runs_at_tiny_size_and_reports_its_targets(tiny):

@@ -21,9 +21,10 @@ from test_record import drvs_report
 
 from drvs.sim.report import SERVER_FIGURES
 from drvs.sim.world_file import load_world
-from drvs.testing import NodeProcess, RosHarness, wait_for
+from drvs.testing import RosHarness
 from drvs.testing.harness import REPO
 from drvs.testing.netns import namespaces_of, unavailable
+from drvs.testing.scenario import ScenarioRun, start_scenario
 
 CROSSING = 'worlds/crossing.yaml'
 WAREHOUSE = 'worlds/warehouse.yaml'
@@ -53,41 +54,20 @@ class Run(NamedTuple):
     pid: int  # its process id
 
 
-class Started(NamedTuple):
-    runner: NodeProcess  # run_scenario.sh, still running
-    out: Path  # its DIR
-    timeout: float  # its --timeout
-
-
-def start_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> Started:
-    """``run_scenario.sh world options`` started into a folder of the harness's.
-
-    Without ``--hosts`` against the harness's master (``--external-master``).
-    """
-    out = ros.root / f'out{len(ros.nodes)}'
-    master = [] if '--hosts' in options else ['--external-master']
-    argv = ['bash', 'scripts/run_scenario.sh', world, *master, *options, '--timeout', str(timeout)]
-    return Started(ros.spawn('run_scenario', [*argv, '--out', str(out)]), out, timeout)
-
-
-def finish_scenario(started: Started, world: str) -> Run:
+def finished(run: ScenarioRun) -> Run:
     """Wait for a started run to end; its :class:`Run`, its output checked."""
-    runner, out = started.runner, started.out
-    wait_for(lambda: not runner.running(), started.timeout + 90, f'run_scenario.sh {world}', interval=0.5)
-    logs = runner.describe() + ''.join(
-        f'\n--- {log.name} ---\n{log.read_text(errors="replace")[-1500:]}'
-        for log in sorted(out.glob('*.log'))
-    )
+    code, out = run.wait(), run.out
+    logs = run.logs()
     assert (out / 'summary.json').exists(), f'no summary.json\n{logs}'
     assert not (out / 'pids').exists(), 'DIR/pids left after the run'
     assert (out / 'run.png').read_bytes()[:4] == b'\x89PNG'
     summary = json.loads((out / 'summary.json').read_text())
-    return Run(runner.process.returncode, summary, logs, out, runner.pid)
+    return Run(code, summary, logs, out, run.runner.pid)
 
 
 def run_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> Run:
     """Run ``run_scenario.sh world options`` into a folder of the harness's, to its end."""
-    return finish_scenario(start_scenario(ros, world, *options, timeout=timeout), world)
+    return finished(start_scenario(ros, world, *options, timeout=timeout))
 
 
 def check_fleet_summary(summary: dict, world: str, logs: str) -> None:
@@ -124,26 +104,19 @@ def server_calls(summary: dict) -> int:
 
 
 @pytest.fixture(scope='module')
-def crossing():
+def crossing(scenario_run):
     """``crossing(requests)``: the crossing world's run with ``--requests requests``, made once
-    per module (the rows test, the comparison and the network hosts test share them). The
-    watch run is the one across network hosts, where they can be made here. Both start at
-    once (a run mostly waits for its robots to drive, and two fit on two cores)."""
-    with RosHarness() as ros:
-        started = {}
-        for requests in ('watch', 'poll'):
-            options = ['--requests', requests]
-            if requests == 'watch' and not unavailable():
-                options += ['--hosts', '--robot-link', '2mbit']
-            started[requests] = start_scenario(ros, CROSSING, *options)
-        runs = {}
+    (test/scenarios/conftest.py: both start together; the watch run is the one across network
+    hosts, where they can be made here), shared by the rows test, the comparison and the
+    network hosts test."""
+    runs = {}
 
-        def run(requests: str) -> Run:
-            if requests not in runs:
-                runs[requests] = finish_scenario(started[requests], CROSSING)
-            return runs[requests]
+    def run(requests: str) -> Run:
+        if requests not in runs:
+            runs[requests] = finished(scenario_run(f'crossing-{requests}'))
+        return runs[requests]
 
-        yield run
+    return run
 
 
 @pytest.mark.parametrize('requests', ['watch', 'poll'])

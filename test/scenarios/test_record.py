@@ -31,7 +31,6 @@ from drvs.testing.messages import round_trip
 from drvs.tools.bag_report import read_bag, regenerate
 
 WORLD = REPO / 'worlds' / 'localisation.yaml'
-SCENARIO_TIMEOUT = 150
 REQUIRED_TOPICS = (
     '/drvs/registry',
     '/drvs/stats',
@@ -372,16 +371,11 @@ def test_drvs_report_refuses_in_one_line_with_exit_2(tmp_path, case):
 
 
 # -- live: a recorded scenario ---------------------------------------------------------------------------
-def test_a_recorded_scenario_replays_and_regenerates_its_summary(ros: RosHarness):
-    out = ros.root / 'out'
-    argv = ['bash', 'scripts/run_scenario.sh', str(WORLD), '--external-master', '--record']
-    runner = ros.spawn('run_scenario', [*argv, '--timeout', str(SCENARIO_TIMEOUT), '--out', str(out)])
-    wait_for(lambda: not runner.running(), SCENARIO_TIMEOUT + 60, 'run_scenario.sh --record', interval=0.5)
-    logs = runner.describe() + ''.join(
-        f'\n--- {log.name} ---\n{log.read_text(errors="replace")[-2000:]}'
-        for log in sorted(out.glob('*.log'))
-    )
-    assert runner.process.returncode == 0, logs
+def test_a_recorded_scenario_replays_and_regenerates_its_summary(ros: RosHarness, scenario_run):
+    run = scenario_run('recorded')  # worlds/localisation.yaml --record (test/scenarios/conftest.py)
+    code, out = run.wait(), run.out
+    logs = run.logs(2000)
+    assert code == 0, logs
     assert not (out / 'run.bag.active').exists(), logs
     both = {'/vs1/detect_object_boundary', '/vs2/detect_object_boundary'}
     with rosbag.Bag(str(out / 'run.bag')) as bag:  # opens only a closed, indexed bag

@@ -3,11 +3,10 @@
 Each test runs the real thing — rosmaster, drvs_server, world_sim, a vision_system
 per camera, the recorder and blind_robot — against a private master
 (``--external-master``), then checks the summary and the ground truth it recorded. The
-obstacles and selectivity runs of ``make test`` start together (``together``), each on a
-master of its own; the tags run and the slow variants run one at a time.
+runs of ``make test`` start two at a time (test/scenarios/conftest.py), each on a master
+of its own; the slow variants run one at a time.
 """
 
-import contextlib
 import json
 import math
 
@@ -16,48 +15,18 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.ros.robot import RobotParams
 from drvs.sim.world_file import load_world
-from drvs.testing import NodeProcess, RosHarness, wait_for
+from drvs.testing import RosHarness
+from drvs.testing.scenario import ScenarioRun, start_scenario
 from drvs.vision.camera import PinholeCamera
 
 SCENARIO_TIMEOUT = 150
 
 
-def start_scenario(
-    ros: RosHarness, world: str, camera_source: str = 'render', requests: str = 'watch'
-) -> NodeProcess:
-    """``scripts/run_scenario.sh world`` started against the harness's master, into its folder."""
-    return ros.spawn(
-        'run_scenario',
-        [
-            'bash',
-            'scripts/run_scenario.sh',
-            world,
-            '--external-master',
-            '--timeout',
-            str(SCENARIO_TIMEOUT),
-            '--out',
-            str(ros.root / 'out'),
-            '--camera-source',
-            camera_source,
-            '--requests',
-            requests,
-        ],
-    )
-
-
-def finish_scenario(ros: RosHarness, runner: NodeProcess, world: str) -> tuple[int, dict, dict, str]:
-    """Wait for a started run to end; its (exit code, summary, trace, logs), its output checked."""
-    out = ros.root / 'out'
-    wait_for(
-        lambda: not runner.running(),
-        SCENARIO_TIMEOUT + 60,
-        f'run_scenario.sh {world} to finish',
-        interval=0.5,
-        on_timeout=runner.describe,
-    )
-    code = runner.process.returncode
+def checked(run: ScenarioRun) -> tuple[int, dict, dict, str]:
+    """Wait for a run to end; its (exit code, summary, trace, logs), its output checked."""
+    code, out = run.wait(), run.out
     logs = (
-        runner.describe()
+        run.runner.describe()
         + '\n'
         + '\n'.join(
             f'--- {path.name} ---\n' + '\n'.join(path.read_text(errors='replace').splitlines()[-15:])
@@ -67,7 +36,7 @@ def finish_scenario(ros: RosHarness, runner: NodeProcess, world: str) -> tuple[i
     summary_path = out / 'summary.json'
     assert summary_path.exists(), f'no summary.json\n{logs}'
     # Its output goes to a file, not a terminal: plain progress lines, no redrawing.
-    output = runner.log_path.read_bytes()
+    output = run.runner.log_path.read_bytes()
     assert b'\r' not in output and b'\x1b' not in output, output
     assert b'run_scenario: state ' in output, output
     assert not (out / 'pids').exists(), 'DIR/pids left after the run'
@@ -75,48 +44,18 @@ def finish_scenario(ros: RosHarness, runner: NodeProcess, world: str) -> tuple[i
     return code, json.loads(summary_path.read_text()), json.loads((out / 'trace.json').read_text()), logs
 
 
-def run_scenario(
-    ros: RosHarness, world: str, camera_source: str = 'render', requests: str = 'watch'
-) -> tuple[int, dict, dict, str]:
-    return finish_scenario(ros, start_scenario(ros, world, camera_source, requests), world)
+def own_run(ros: RosHarness, world: str, camera_source: str) -> tuple[int, dict, dict, str]:
+    """A run of ``world`` on the test's master, checked (:func:`checked`)."""
+    options = ('--camera-source', camera_source, '--requests', 'watch')
+    return checked(start_scenario(ros, world, *options, timeout=SCENARIO_TIMEOUT))
 
 
-TOGETHER = {
-    'obstacles': ('worlds/obstacles.yaml', 'render', 'watch'),
-    'selectivity': ('worlds/selectivity.yaml', 'render', 'watch'),
-}
-"""Runs of the default suite that start at once: (world, camera source, requests). Each is
-half a minute of mostly waiting for its robot to drive, at about half a core; the tags
-scenario (nearly a core for its tag detection) runs alone: with others on two cores its
-cameras lose the robot."""
-
-
-@pytest.fixture(scope='module')
-def together():
-    """``finished(name)``: the result of a run of :data:`TOGETHER`, all of which start at once,
-    each on a master of its own, and end in about the time of the longest."""
-    with contextlib.ExitStack() as stack:
-        started = {}
-        for name, (world, camera_source, requests) in TOGETHER.items():
-            ros = stack.enter_context(RosHarness())
-            started[name] = ros, start_scenario(ros, world, camera_source, requests)
-        results = {}
-
-        def finished(name: str) -> tuple[int, dict, dict, str]:
-            if name not in results:
-                ros, runner = started[name]
-                results[name] = finish_scenario(ros, runner, TOGETHER[name][0])
-            return results[name]
-
-        yield finished
-
-
-def scenario(request, name: str, camera_source: str) -> tuple[int, dict, dict, str]:
-    """A run of :data:`TOGETHER` with ``camera_source``: the shared one, or (a slow variant) its own."""
-    world, shared_source, requests = TOGETHER[name]
-    if camera_source == shared_source:
-        return request.getfixturevalue('together')(name)
-    return run_scenario(request.getfixturevalue('ros'), world, camera_source, requests)
+def scenario(request, name: str, camera_source: str = 'render') -> tuple[int, dict, dict, str]:
+    """The default suite's run ``name`` (test/scenarios/conftest.py) or, with another camera
+    source (a slow variant), a run of its own."""
+    if camera_source == 'render':
+        return checked(request.getfixturevalue('scenario_run')(name))
+    return own_run(request.getfixturevalue('ros'), f'worlds/{name}.yaml', camera_source)
 
 
 @pytest.mark.parametrize(
@@ -149,7 +88,7 @@ def test_selectivity_far_cameras_see_none_of_the_robot_station_box():
 @pytest.mark.slow
 @pytest.mark.parametrize('camera_source', ['render', 'topic'])
 def test_localisation_the_blind_robot_finds_itself_and_its_station(ros: RosHarness, camera_source):
-    code, summary, trace, logs = run_scenario(ros, 'worlds/localisation.yaml', camera_source)
+    code, summary, trace, logs = own_run(ros, 'worlds/localisation.yaml', camera_source)
     assert code == 0, logs
     assert summary['reached'] is True
     assert summary['collisions'] == 0
@@ -204,13 +143,13 @@ def test_selectivity_far_cameras_get_localisation_but_no_obstacle_requests(reque
     assert summary['reached'] is True
 
 
-def test_tags_the_robot_sees_its_pose_and_heading_and_finds_the_human_by_motion(ros: RosHarness):
+def test_tags_the_robot_sees_its_pose_and_heading_and_finds_the_human_by_motion(request):
     """The fourth scenario: tags for the robot and its station, ``motion`` for the human."""
     world = load_world('worlds/tags.yaml')
     assert world.colour_models['human'] == 'motion'  # no colour model for the human
     # Polling: with watches the robot drives into the human once it stops in the gap (a person
     # who stands still fades out of the motion model, and changes_only reports it gone).
-    code, summary, trace, logs = run_scenario(ros, 'worlds/tags.yaml', requests='poll')
+    code, summary, trace, logs = scenario(request, 'tags')
     assert code == 0, logs
     assert summary['reached'] is True
     assert summary['collisions'] == 0
