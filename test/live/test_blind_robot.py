@@ -74,7 +74,9 @@ def calls(output):
     return [e for e in read_json_lines(output) if e['kind'] in ('request', 'watch')]
 
 
-@pytest.mark.parametrize('mode', ['watch', 'poll'])
+# The polling variant is long and slow-marked: polling re-plans are checked in the default suite by the
+# whole runs that poll (test_scenarios' tags run, test_fleet's crossing with polling).
+@pytest.mark.parametrize('mode', ['watch', pytest.param('poll', marks=pytest.mark.slow)])
 def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros, mode):
     world = write_world(
         ros.root,
@@ -157,7 +159,9 @@ def test_reaches_the_station_and_replans_around_an_obstacle_that_appears(ros, mo
 
 @pytest.mark.parametrize(
     'status, name, mode',
-    [(2, 'BUSY', 'watch'), (9, 'status 9', 'watch'), (2, 'BUSY', 'poll')],
+    # busy-poll is slow-marked: the poll schedule's retries after retry_after are unit-tested
+    # (test/unit/robot/test_poll_schedule.py) and the watch variants run here by default.
+    [(2, 'BUSY', 'watch'), (9, 'status 9', 'watch'), pytest.param(2, 'BUSY', 'poll', marks=pytest.mark.slow)],
     ids=['busy', 'unknown-status', 'busy-poll'],
 )
 def test_temporary_refusals_are_retried_after_retry_after_and_the_robot_arrives(ros, status, name, mode):
