@@ -8,7 +8,9 @@ put them first; they look at no time either), and the test only waits for what i
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -48,6 +50,7 @@ class TinyBench:
                 stdout=stdout,
                 stderr=stderr,
                 stdin=subprocess.DEVNULL,
+                start_new_session=True,  # its masters and nodes in one group, stopped together
             )
 
     def wait(self, timeout: float) -> tuple[int, str]:
@@ -57,9 +60,12 @@ class TinyBench:
         return self.process.returncode, output + (self.folder / 'stderr').read_text(errors='replace')
 
     def close(self) -> None:
-        if self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
+        """Kill the run and everything it started (its process group), and remove its folder."""
+        try:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.process.wait(10)
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
@@ -79,3 +85,11 @@ def tiny_bench():
         yield bench
     finally:
         bench.close()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionfinish(session, exitstatus):
+    """A run started but never waited for (the session was cut short) is stopped before the
+    suite looks for processes left behind."""
+    while _started:
+        _started.pop().close()
