@@ -281,7 +281,7 @@ def _rate(value) -> str:
 
 def map_bytes(world_path: str) -> int:
     """The data of the robot's map message (one byte a cell) in this world, at its default grid."""
-    from drvs.ros.robot import grid_resolution
+    from drvs.robot.mapping import grid_resolution
 
     width, height = load_world(REPO / world_path).floor_size
     resolution = grid_resolution((width, height))

@@ -153,7 +153,7 @@ def unknown_param_warnings(
 ) -> list[str]:
     """One warning for each private parameter in ``names`` that ``cls`` does not declare.
 
-    >>> from drvs.ros.server import ServerSettings
+    >>> from drvs.server.params import ServerSettings
     >>> unknown_param_warnings(ServerSettings, ['forward_timout', 'lease'])
     ['unknown parameter ~forward_timout (ignored): did you mean ~forward_timeout?']
     """

@@ -21,7 +21,7 @@ from drvs.common.health import Health, robot_health
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
 from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
-from drvs.robot.mapping import MapBuilder, grid_resolution
+from drvs.robot.mapping import MapBuilder
 from drvs.robot.mission import (
     Coverage,
     callback_stamp,
@@ -48,8 +48,7 @@ from drvs.srv import (
     WatchObjectBoundaryRequest,
 )
 
-# RobotParams for nodes/blind_robot and drvs.ros.param_docs; grid_resolution for bench/link.py.
-__all__ = ['BlindRobot', 'RobotParams', 'grid_resolution']
+__all__ = ['BlindRobot']
 
 IDLE_WAIT = 0.5
 """Seconds the idle requester sleeps at most before it checks for a stop (a new round wakes it at once)."""

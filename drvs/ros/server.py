@@ -41,7 +41,7 @@ from drvs.srv import (
     WatchObjectBoundaryResponse,
 )
 
-__all__ = ['ServerSettings', 'DrvsServer']
+__all__ = ['DrvsServer']
 
 WATCH_WAIT = 0.5
 """Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""

@@ -50,7 +50,7 @@ from drvs.vision.pipeline import draw_detections, in_region, on_floor
 from drvs.vision.registration import RENEW, UNREGISTER, Attempt, Registration
 from drvs.vision.watch_runner import Terms, WatchRunner, parse_watch
 
-__all__ = ['VisionSystemNode', 'VisionSystemParams']  # the params live in vision_system_params
+__all__ = ['VisionSystemNode']
 
 MAX_ALGORITHMS_COUNTED = 64
 """Distinct algorithm strings counted in ``~stats``; callers choose them, so the count is capped."""

@@ -13,7 +13,7 @@ import math
 import pytest
 from shapely.geometry import LineString, Point, Polygon, box
 
-from drvs.ros.robot import RobotParams
+from drvs.robot.params import RobotParams
 from drvs.sim.world_file import load_world
 from drvs.testing import RosHarness
 from drvs.testing.scenario import ScenarioRun, start_scenario

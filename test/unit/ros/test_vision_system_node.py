@@ -9,13 +9,14 @@ import pytest
 from drvs.common.health import ERROR, OK, WARN
 from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE
 from drvs.ros.service_client import ServiceCallError
-from drvs.ros.vision_system import VisionSystemNode, VisionSystemParams
+from drvs.ros.vision_system import VisionSystemNode
 from drvs.srv import (
     DetectObjectBoundaryRequest,
     RegisterVisionServiceResponse,
     WatchObjectBoundaryRequest,
 )
 from drvs.testing import ManualClock
+from drvs.vision.params import VisionSystemParams
 from drvs.vision.registration import Registration
 
 FLOOR = [(0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (0.0, 1.0)]
