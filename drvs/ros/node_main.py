@@ -146,10 +146,11 @@ def error_block(prog: str, error: BaseException) -> str:
 
 
 def spin(node) -> int:
-    """Start ``node`` and serve until shutdown; 1 if one of its background loops failed, else 0."""
+    """Start ``node`` (built on :class:`drvs.ros.node.NodeScaffold`, as ``node.node``) and serve
+    until shutdown; 1 if one of its background loops failed (logged with its traceback), else 0."""
     node.start()
     rospy.spin()
-    return 1 if node.guard.failure else 0  # a background loop failed: logged with its traceback
+    return 1 if node.node.failure else 0
 
 
 def shutdown_from_a_thread(signum: int, frame) -> None:

@@ -293,11 +293,6 @@ class RecorderNode:
         self.node = NodeScaffold(None)
 
     @property
-    def guard(self):
-        """The node's loop guard (its ``failure`` decides the exit code)."""
-        return self.node.guard
-
-    @property
     def record(self) -> RunRecord:
         return self.recorder.record
 

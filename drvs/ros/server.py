@@ -122,11 +122,6 @@ class DrvsServer:
         self.algorithm_names: AlgorithmNames | None = None
         self._registry_publisher = self._markers_publisher = self._stats_publisher = None
 
-    @property
-    def guard(self):
-        """The node's loop guard (its ``failure`` decides the exit code)."""
-        return self.node.guard
-
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
         self.algorithms = default_algorithms()

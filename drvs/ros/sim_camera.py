@@ -162,7 +162,6 @@ class SimCameraNode:
         self._scene_lock = threading.Lock()  # PyBullet is not thread-safe; stop() closes the scene
         self.poses = LatestPoses(params.poses_topic)
         self.node = NodeScaffold(None)  # no /diagnostics: a simulation node is not part of DRVS
-        self.guard = self.node.guard  # node_main's exit code reads guard.failure
         self._start_time = 0.0
 
     # -- lifecycle -----------------------------------------------------------------------------

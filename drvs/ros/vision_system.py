@@ -79,7 +79,6 @@ class VisionSystemNode:
     def __init__(self, params: VisionSystemParams):
         self.params = params
         self.node = NodeScaffold(self.health, STATS_COUNTERS, hardware_id=params.camera)
-        self.guard = self.node.guard  # node_main's exit code reads guard.failure
         if params.source == 'render':
             from drvs.ros.render_source import RenderSource  # pybullet: only for the simulation's rendering
 

@@ -49,7 +49,6 @@ class WorldSimNode:
         self._lock = threading.Lock()  # guards the simulation, the clock and the command times
         self._last_command: dict[str, float] = {}  # robot -> when its last command came
         self.node = NodeScaffold(None)  # no /diagnostics: the simulated world is not part of DRVS
-        self.guard = self.node.guard  # node_main's exit code reads guard.failure
 
     def start(self) -> None:
         self.simulation = Simulation(self.world)
