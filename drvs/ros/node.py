@@ -7,6 +7,7 @@ threads of each node are listed in docs/architecture.md.
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 import traceback
@@ -21,7 +22,7 @@ from drvs.common.log_throttle import LogThrottle, not_logged
 from drvs.common.status import UNAVAILABLE, Refusal, name
 from drvs.ros.diagnostics import DiagnosticsPublisher
 
-__all__ = ['NodeScaffold', 'internal_error', 'refusal_response']
+__all__ = ['NodeScaffold', 'debug_logged', 'internal_error', 'refusal_response']
 
 LOG_PERIOD = 1.0
 """Seconds between two throttled log lines of one kind."""
@@ -146,3 +147,9 @@ def internal_error(node: str, what: str, error: Exception, retry_after: float) -
         f'internal error in {node} ({type(error).__name__}: {error}); it is logged there; retry later',
         retry_after,
     )
+
+
+def debug_logged() -> bool:
+    """Whether a debug line would be logged: rospy formats and dispatches one before it knows, so a
+    hot path asks first."""
+    return logging.getLogger('rosout').isEnabledFor(logging.DEBUG)

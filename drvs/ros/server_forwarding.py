@@ -9,7 +9,6 @@ of a watch is in docs/architecture.md.
 from __future__ import annotations
 
 import io
-import logging
 import time
 from collections.abc import Callable
 
@@ -20,6 +19,7 @@ from drvs.common.client_cache import ClosingCache
 from drvs.common.counters import Counters
 from drvs.common.status import name
 from drvs.ros.conversions import box_to_msg
+from drvs.ros.node import debug_logged
 from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient
 from drvs.server.registry import Registration, Registry
 from drvs.server.watch_table import ONE_SHOT, WITHDRAWAL, Forward, Watch
@@ -215,7 +215,7 @@ class Forwarder:
             return None
         if service in self.registry:
             self.registry.record_success(service)
-        if _debug_logged():
+        if debug_logged():
             rospy.logdebug(
                 '%s to %s in %.1f ms: status %s %s',
                 what,
@@ -225,11 +225,6 @@ class Forwarder:
                 answer.message,
             )
         return answer
-
-
-def _debug_logged() -> bool:
-    """Whether a debug message would be logged (rospy formats and dispatches it before it knows)."""
-    return logging.getLogger('rosout').isEnabledFor(logging.DEBUG)
 
 
 def watch_service_of(service: str) -> str:

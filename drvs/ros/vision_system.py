@@ -9,7 +9,6 @@ docs/nodes/vision_system.md.
 from __future__ import annotations
 
 import functools
-import logging
 import math
 import queue
 import threading
@@ -33,7 +32,7 @@ from drvs.ros.conversions import msg_to_box, points_to_polygon
 from drvs.ros.frame_sources import FrameUnavailable, TopicSource
 from drvs.ros.markers import markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
-from drvs.ros.node import NodeScaffold, internal_error, refusal_response
+from drvs.ros.node import NodeScaffold, debug_logged, internal_error, refusal_response
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
     DetectObjectBoundary,
@@ -192,7 +191,7 @@ class VisionSystemNode:
                 self.params.max_frame_age or 0.1,
             )
             return self._refuse(request, refusal)
-        if _debug_logged():
+        if debug_logged():
             rospy.logdebug(
                 '%s: accepted request %r (%s)', rospy.get_name(), request.request_id, request.algorithm
             )
@@ -300,7 +299,7 @@ class VisionSystemNode:
         outlines = [outline for outline, _ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
-        if _debug_logged():
+        if debug_logged():
             rospy.logdebug(
                 '%s: request %r: %d object(s)%s',
                 rospy.get_name(),
@@ -483,8 +482,3 @@ class VisionSystemNode:
         message.header.frame_id = self.params.camera
         message.data = np.ascontiguousarray(image).tobytes()
         self.debug_pub.publish(message)
-
-
-def _debug_logged() -> bool:
-    """Whether a debug message would be logged (rospy formats and dispatches it before it knows)."""
-    return logging.getLogger('rosout').isEnabledFor(logging.DEBUG)
