@@ -30,6 +30,7 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
         'float64 max_y',
         'string callback_service',
         'string request_id',
+        'bool fused',
         '---',
         *STATUS_CONSTANTS,
         'bool accepted',
