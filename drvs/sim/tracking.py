@@ -15,6 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from shapely.geometry import Polygon
 
 from drvs.sim.world import World
 
@@ -77,6 +78,22 @@ class TruthClass:
     def tagged(self) -> bool:
         """Its tracks come from tags (the algorithm is ``apriltag``)."""
         return self.algorithm.split(':', 1)[0] == 'apriltag'
+
+
+def centroid(outline: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """Where a track is: its outline's centroid (of its area; of its points for a degenerate one).
+
+    >>> centroid([(0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (0.0, 1.0)])
+    (1.0, 0.5)
+    """
+    if len(outline) >= 3:
+        polygon = Polygon(outline)
+        if polygon.is_valid and polygon.area > 0:
+            return polygon.centroid.x, polygon.centroid.y
+    if not outline:
+        return math.nan, math.nan
+    x, y = np.mean(np.asarray(outline, dtype=float), axis=0)
+    return float(x), float(y)
 
 
 def truth_classes(world: World) -> dict[str, TruthClass]:
