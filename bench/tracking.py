@@ -58,14 +58,24 @@ COLUMNS = (
 
 
 # -- a run ----------------------------------------------------------------------------------------
-def run_world(ctx: Context, world: str, timeout: float) -> dict:
-    """Run ``world`` with the fused watcher beside it; what it left: code, summary, wall seconds, log."""
-    out = ctx.work_dir / Path(world).stem
-    out.mkdir(parents=True, exist_ok=True)
+def watcher_argv(world: str) -> list[str]:
+    """The fused watcher's command for ``world``: the people's and the robots' models, the whole floor."""
     loaded = load_world(REPO / world)
     shared = loaded.robots[0].colour_models
     algorithms = [shared[role] for role in ('human', 'robot') if role in shared]
     region = [0.0, 0.0, *loaded.floor_size]
+    return [
+        sys.executable,
+        str(WATCHER),
+        '__name:=fused_watcher',
+        f'_algorithms:={json.dumps(algorithms)}',
+    ] + [f'_region:={json.dumps(region)}']
+
+
+def run_world(ctx: Context, world: str, timeout: float) -> dict:
+    """Run ``world`` with the fused watcher beside it; what it left: code, summary, wall seconds, log."""
+    out = ctx.work_dir / Path(world).stem
+    out.mkdir(parents=True, exist_ok=True)
     label = Path(world).stem
     started = time.monotonic()
     summary_path = out / 'summary.json'
@@ -74,11 +84,7 @@ def run_world(ctx: Context, world: str, timeout: float) -> dict:
         argv = ['bash', str(REPO / 'scripts' / 'run_scenario.sh'), str(REPO / world), '--external-master']
         argv += ['--timeout', f'{timeout:g}', '--out', str(out)]
         ctx.progress(f'{label}: starting the scenario and the fused watcher')
-        watcher = ros.spawn(
-            'fused_watcher',
-            [sys.executable, str(WATCHER), '__name:=fused_watcher', f'_algorithms:={json.dumps(algorithms)}']
-            + [f'_region:={json.dumps(region)}'],
-        )
+        watcher = ros.spawn('fused_watcher', watcher_argv(world))
         runner = ros.spawn('run_scenario', argv)
         deadline = started + timeout + 300
         shown = ''
