@@ -13,21 +13,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment  # type: ignore[import]  # scipy ships no type information
 from shapely.geometry import Polygon, box
 
-from drvs.server.outlines import Shape, clean, combine, contains, overlap_area, union_outline
+from drvs.server.outlines import Shape, clean, contains, union_outline
 from drvs.server.pose_check import PoseCheck
+from drvs.server.track_association import Candidate, Rules, Seen, Track, associate
 from drvs.server.track_motion import Motion, MotionNoise
 
 __all__ = ['DEFAULTS', 'FrameResult', 'Observation', 'TrackView', 'Tracker', 'TrackerSettings']
 
 Point = tuple[float, float]
 Box = tuple[float, float, float, float]
-_NO = 1e9  # the cost of a pair outside the gate
 
 
 @dataclass(frozen=True)
@@ -149,44 +148,6 @@ class TrackView:
     """Capture stamp of the newest frame that updated it."""
 
 
-@dataclass
-class _Seen:
-    stamp: float  # of this camera's newest frame that updated the track
-    shape: Shape
-
-
-@dataclass(eq=False)
-class _Track:
-    track_id: int
-    label: str
-    motion: Motion
-    evidence: float
-    last_seen: float
-    seen: dict[str, _Seen] = field(default_factory=dict)
-    stationary: bool = False
-
-    def velocity(self) -> Point:
-        if self.stationary:
-            return (0.0, 0.0)
-        state = self.motion.state
-        return (state.vx, state.vy)
-
-    def position(self, stamp: float) -> Point:
-        return self.motion.position(stamp, moving=not self.stationary)
-
-    def fresh(self, age: float) -> list[_Seen]:
-        """The cameras' outlines that make its fused outline."""
-        return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
-
-
-@dataclass
-class _Candidate:
-    shape: Shape
-    label: str
-    confidence: float
-    pieces: list[Shape] = field(default_factory=list)
-
-
 class Tracker:
     """Fuses frames of many cameras into tracks (see the module docstring)."""
 
@@ -194,10 +155,18 @@ class Tracker:
         self.settings = settings
         self._noise = MotionNoise(settings.acceleration_noise, settings.initial_speed)
         self._window = max(settings.reorder_window, settings.stationary_time) + 0.5
-        self._tracks: dict[int, _Track] = {}
-        self._by_label: dict[str, _Track] = {}
+        self._tracks: dict[int, Track] = {}
+        self._by_label: dict[str, Track] = {}
         self._next_id = 1
         self._gone: list[int] = []  # ended in frame() (a label seen again, a full table), not yet reported
+        self._rules = Rules(
+            settings.gate,
+            settings.coast,
+            settings.min_overlap,
+            settings.merge_overlap,
+            settings.merge_gap,
+            settings.outline_age,
+        )
         self._pose = PoseCheck(settings.pose_tolerance, settings.pose_min_objects, settings.pose_window)
 
     def __len__(self) -> int:
@@ -218,9 +187,11 @@ class Tracker:
         if not isinstance(stamp, int | float) or not math.isfinite(stamp):
             return FrameResult(0, 0, 0, False, skipped=len(observations))
         candidates, skipped = self._candidates(observations)
-        pairs, fresh = self._associate(stamp, candidates)
-        skipped += len([c for c in fresh if c is None])
-        fresh = [c for c in fresh if c is not None]
+        association = associate(stamp, candidates, list(self._tracks.values()), self._by_label, self._rules)
+        for track in association.ended:
+            self._remove(track)
+            self._gone.append(track.track_id)
+        pairs, fresh, skipped = association.pairs, association.fresh, skipped + association.skipped
         for candidate, track in pairs:
             self._compare(vision_system, stamp, candidate, track)
         if self._pose.judge(vision_system, stamp):
@@ -241,8 +212,8 @@ class Tracker:
         merged = sum(len(c.pieces) - 1 for c, _ in pairs if c.pieces)
         return FrameResult(len(pairs) + merged, created, untracked, False, skipped=skipped, merged=merged)
 
-    def _candidates(self, observations: Sequence[Observation]) -> tuple[list[_Candidate], int]:
-        candidates: list[_Candidate] = []
+    def _candidates(self, observations: Sequence[Observation]) -> tuple[list[Candidate], int]:
+        candidates: list[Candidate] = []
         skipped = 0
         for observation in observations:
             shape = clean(getattr(observation, 'outline', ()))
@@ -254,7 +225,7 @@ class Tracker:
                 confidence = 0.0
             label = getattr(observation, 'label', '')
             label = label if isinstance(label, str) else str(label)
-            candidates.append(_Candidate(shape, label, min(1.0, max(0.0, float(confidence)))))
+            candidates.append(Candidate(shape, label, min(1.0, max(0.0, float(confidence)))))
         return candidates, skipped
 
     def _end_unseen(self, stamp: float) -> None:
@@ -263,116 +234,10 @@ class Tracker:
             self._remove(track)
             self._gone.append(track.track_id)
 
-    def _remove(self, track: _Track) -> None:
+    def _remove(self, track: Track) -> None:
         del self._tracks[track.track_id]
         if self._by_label.get(track.label) is track:
             del self._by_label[track.label]
-
-    # -- association -------------------------------------------------------------------------------
-
-    def _associate(
-        self, stamp: float, candidates: list[_Candidate]
-    ) -> tuple[list[tuple[_Candidate, _Track]], list[_Candidate | None]]:
-        """Pairs (candidate, track), and the candidates that need new tracks (None: a label's
-        second outline in the frame, skipped)."""
-        pairs: list[tuple[_Candidate, _Track]] = []
-        fresh: list[_Candidate | None] = []
-        labelled: dict[str, list[_Candidate]] = {}
-        plain: list[_Candidate] = []
-        for candidate in candidates:
-            if candidate.label:
-                labelled.setdefault(candidate.label, []).append(candidate)
-            else:
-                plain.append(candidate)
-        for label, group in labelled.items():
-            track = self._by_label.get(label)
-            if track is not None and stamp - track.last_seen > self.settings.coast:
-                self._remove(track)  # gone: the label starts a new track
-                self._gone.append(track.track_id)
-                track = None
-            if track is None:
-                best = max(group, key=lambda c: c.shape.area)
-                fresh.append(best)
-            else:
-                x, y = track.position(stamp)
-                best = min(group, key=lambda c: math.hypot(c.shape.centroid[0] - x, c.shape.centroid[1] - y))
-                pairs.append((best, track))
-            fresh.extend([None] * (len(group) - 1))
-        coast = self.settings.coast
-        tracks = [t for t in self._tracks.values() if not t.label and stamp - t.last_seen <= coast]
-        if not plain or not tracks:
-            fresh.extend(plain)
-            return pairs, fresh
-        cost, inside = self._costs(stamp, plain, tracks)
-        rows, cols = linear_sum_assignment(cost)
-        joined: dict[int, _Candidate] = {}  # column -> the candidate that joined the track
-        for row, col in zip(rows.tolist(), cols.tolist(), strict=True):
-            if cost[row, col] < _NO:
-                joined[col] = plain[row]
-        taken = {id(c) for c in joined.values()}
-        for row, candidate in enumerate(plain):
-            if id(candidate) in taken:
-                continue
-            col = self._piece_of(candidate, inside[row], joined)
-            if col is None:
-                fresh.append(candidate)
-            else:
-                joined[col].pieces.append(candidate.shape)
-        for col, candidate in joined.items():
-            if candidate.pieces:
-                candidate.pieces.insert(0, candidate.shape)
-                candidate.shape = combine(candidate.pieces)
-            pairs.append((candidate, tracks[col]))
-        return pairs, fresh
-
-    def _costs(
-        self, stamp: float, plain: list[_Candidate], tracks: list[_Track]
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Cost (candidates x tracks): distance to the prediction over the gate plus one minus the
-        overlap; ``_NO`` outside the gate without overlap. Also how much of each candidate lies
-        inside each track (shared area / the candidate's area)."""
-        s = self.settings
-        centroids = np.array([c.shape.centroid for c in plain])
-        predicted = np.array([t.position(stamp) for t in tracks])
-        distance = np.hypot(*(centroids[:, None, :] - predicted[None, :, :]).transpose(2, 0, 1))
-        overlap = np.zeros(distance.shape)
-        inside = np.zeros(distance.shape)
-        boxes = np.array([c.shape.bounds for c in plain])
-        for col, track in enumerate(tracks):
-            velocity = track.velocity()
-            for seen in track.fresh(s.outline_age):
-                dt = stamp - seen.stamp
-                offset = (velocity[0] * dt, velocity[1] * dt)
-                low_x, low_y, high_x, high_y = seen.shape.bounds
-                near = (
-                    (boxes[:, 0] < high_x + offset[0])
-                    & (boxes[:, 2] > low_x + offset[0])
-                    & (boxes[:, 1] < high_y + offset[1])
-                    & (boxes[:, 3] > low_y + offset[1])
-                )
-                for row in np.flatnonzero(near).tolist():
-                    shape = plain[row].shape
-                    shared = overlap_area(shape, seen.shape, offset)
-                    if shared > 0:
-                        overlap[row, col] = max(overlap[row, col], shared / min(shape.area, seen.shape.area))
-                        inside[row, col] = max(inside[row, col], shared / shape.area)
-        allowed = (distance <= s.gate) | (overlap >= s.min_overlap)
-        cost = np.minimum(distance / s.gate, 2.0) + (1.0 - overlap)
-        return np.where(allowed, cost, _NO), inside
-
-    def _piece_of(
-        self, candidate: _Candidate, inside: np.ndarray, joined: dict[int, _Candidate]
-    ) -> int | None:
-        """The track (column) this unmatched candidate is a second piece of, if any."""
-        best: int | None = None
-        for col, other in joined.items():
-            if inside[col] < self.settings.merge_overlap or (
-                best is not None and inside[col] <= inside[best]
-            ):
-                continue
-            if _gap(candidate.shape, other.shape, self.settings.merge_gap) <= self.settings.merge_gap:
-                best = col
-        return best
 
     # -- updates -----------------------------------------------------------------------------------
 
@@ -382,21 +247,21 @@ class Tracker:
     def _evidence(self, confidence: float) -> float:
         return confidence if confidence > 0 else self.settings.default_confidence
 
-    def _update(self, track: _Track, camera: str, stamp: float, candidate: _Candidate) -> None:
+    def _update(self, track: Track, camera: str, stamp: float, candidate: Candidate) -> None:
         track.motion.update(stamp, candidate.shape.centroid, self._sigma2(candidate.shape))
         seen = track.seen.get(camera)
         if seen is None or seen.stamp <= stamp:
-            track.seen[camera] = _Seen(stamp, candidate.shape)
+            track.seen[camera] = Seen(stamp, candidate.shape)
         track.last_seen = max(track.last_seen, stamp)
         track.evidence = 1 - (1 - track.evidence) * (1 - self._evidence(candidate.confidence))
         speed = track.motion.average_speed(self.settings.stationary_time)
         track.stationary = speed is not None and speed < self.settings.stationary_speed
 
-    def _create(self, camera: str, stamp: float, candidate: _Candidate) -> None:
+    def _create(self, camera: str, stamp: float, candidate: Candidate) -> None:
         shape = candidate.shape
         motion = Motion(self._noise, self._window, stamp, shape.centroid, self._sigma2(shape))
-        track = _Track(self._next_id, candidate.label, motion, self._evidence(candidate.confidence), stamp)
-        track.seen[camera] = _Seen(stamp, shape)
+        track = Track(self._next_id, candidate.label, motion, self._evidence(candidate.confidence), stamp)
+        track.seen[camera] = Seen(stamp, shape)
         self._next_id += 1
         self._tracks[track.track_id] = track
         if track.label:
@@ -424,7 +289,7 @@ class Tracker:
 
     # -- wrong poses -------------------------------------------------------------------------------
 
-    def _compare(self, camera: str, stamp: float, candidate: _Candidate, track: _Track) -> None:
+    def _compare(self, camera: str, stamp: float, candidate: Candidate, track: Track) -> None:
         """Record how far ``camera``'s outline is from each other camera's of the same track."""
         s = self.settings
         vx, vy = track.velocity()
@@ -492,15 +357,6 @@ class Tracker:
     def forget(self, vision_system: str) -> None:
         """``vision_system`` unregistered or was removed: drop its pose check (its tracks coast)."""
         self._pose.forget(vision_system)
-
-
-def _gap(a: Shape, b: Shape, limit: float) -> float:
-    """Distance between two outlines; their bounds' distance when that exceeds ``limit`` already."""
-    dx = max(a.bounds[0] - b.bounds[2], b.bounds[0] - a.bounds[2], 0.0)
-    dy = max(a.bounds[1] - b.bounds[3], b.bounds[1] - a.bounds[3], 0.0)
-    if math.hypot(dx, dy) > limit:
-        return math.hypot(dx, dy)
-    return float(a.polygon().distance(b.polygon()))
 
 
 def _overlaps(outline: Sequence[Point], region: Box) -> bool:

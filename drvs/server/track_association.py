@@ -1,0 +1,204 @@
+"""Which outlines of one camera frame belong to which track: the fusion tracker's association.
+
+A labelled outline (a tag) joins the track with its label, wherever it is; the others are
+assigned globally (Hungarian, :func:`scipy.optimize.linear_sum_assignment`) on a cost of centroid
+distance to each track's prediction and outline overlap, within a gate or an overlap; an outline
+left over that lies mostly inside a track another outline of the frame joined, close to that
+outline, is a second piece of it. The tracker's rows (:class:`Track`) live here too. The rules
+and their constants: docs/fusion-tracking.md ("Association").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment  # type: ignore[import]  # scipy ships no type information
+
+from drvs.server.outlines import Shape, combine, overlap_area
+from drvs.server.track_motion import Motion
+
+__all__ = ['Association', 'Candidate', 'Rules', 'Seen', 'Track', 'associate']
+
+Point = tuple[float, float]
+_NO = 1e9  # the cost of a pair outside the gate
+
+
+@dataclass
+class Seen:
+    """One camera's newest outline of a track."""
+
+    stamp: float
+    shape: Shape
+
+
+@dataclass(eq=False)
+class Track:
+    """One row of the track table."""
+
+    track_id: int
+    label: str
+    motion: Motion
+    evidence: float  # 0..1, see TrackView.confidence
+    last_seen: float
+    seen: dict[str, Seen] = field(default_factory=dict)  # camera -> its newest outline
+    stationary: bool = False
+
+    def velocity(self) -> Point:
+        if self.stationary:
+            return (0.0, 0.0)
+        state = self.motion.state
+        return (state.vx, state.vy)
+
+    def position(self, stamp: float) -> Point:
+        return self.motion.position(stamp, moving=not self.stationary)
+
+    def fresh(self, age: float) -> list[Seen]:
+        """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
+        return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
+
+
+@dataclass
+class Candidate:
+    """One checked outline of the frame; ``pieces`` once other outlines merged into it."""
+
+    shape: Shape
+    label: str
+    confidence: float
+    pieces: list[Shape] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Rules:
+    """The constants of association (TrackerSettings' fields of the same names)."""
+
+    gate: float
+    coast: float
+    min_overlap: float
+    merge_overlap: float
+    merge_gap: float
+    outline_age: float
+
+
+@dataclass
+class Association:
+    """What :func:`associate` decided."""
+
+    pairs: list[tuple[Candidate, Track]] = field(default_factory=list)
+    fresh: list[Candidate] = field(default_factory=list)  # need new tracks
+    skipped: int = 0  # a label's second outline in the frame
+    ended: list[Track] = field(default_factory=list)  # labelled tracks past their coast time
+
+
+def associate(
+    stamp: float,
+    candidates: Sequence[Candidate],
+    tracks: Sequence[Track],
+    by_label: Mapping[str, Track],
+    rules: Rules,
+) -> Association:
+    """Associate one frame's ``candidates``, captured at ``stamp``, with the ``tracks``."""
+    result = Association()
+    labelled: dict[str, list[Candidate]] = {}
+    plain: list[Candidate] = []
+    for candidate in candidates:
+        if candidate.label:
+            labelled.setdefault(candidate.label, []).append(candidate)
+        else:
+            plain.append(candidate)
+    for label, group in labelled.items():
+        track = by_label.get(label)
+        if track is not None and stamp - track.last_seen > rules.coast:
+            result.ended.append(track)  # gone: the label starts a new track
+            track = None
+        if track is None:
+            result.fresh.append(max(group, key=lambda c: c.shape.area))
+        else:
+            x, y = track.position(stamp)
+            best = min(group, key=lambda c: math.hypot(c.shape.centroid[0] - x, c.shape.centroid[1] - y))
+            result.pairs.append((best, track))
+        result.skipped += len(group) - 1
+    alive = [t for t in tracks if not t.label and stamp - t.last_seen <= rules.coast]
+    if not plain or not alive:
+        result.fresh.extend(plain)
+        return result
+    cost, inside = _costs(stamp, plain, alive, rules)
+    rows, cols = linear_sum_assignment(cost)
+    joined: dict[int, Candidate] = {}  # column -> the candidate that joined the track
+    for row, col in zip(rows.tolist(), cols.tolist(), strict=True):
+        if cost[row, col] < _NO:
+            joined[col] = plain[row]
+    taken = {id(c) for c in joined.values()}
+    for row, candidate in enumerate(plain):
+        if id(candidate) in taken:
+            continue
+        col = _piece_of(candidate, inside[row], joined, rules)
+        if col is None:
+            result.fresh.append(candidate)
+        else:
+            joined[col].pieces.append(candidate.shape)
+    for col, candidate in joined.items():
+        if candidate.pieces:
+            candidate.pieces.insert(0, candidate.shape)
+            candidate.shape = combine(candidate.pieces)
+        result.pairs.append((candidate, alive[col]))
+    return result
+
+
+def _costs(
+    stamp: float, plain: list[Candidate], tracks: list[Track], rules: Rules
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cost (candidates x tracks): distance to the prediction over the gate plus one minus the
+    overlap (shared area / the smaller area, the most with any camera's outline of the track);
+    ``_NO`` outside the gate without overlap. Also how much of each candidate lies inside each
+    track (shared area / the candidate's area)."""
+    centroids = np.array([c.shape.centroid for c in plain])
+    predicted = np.array([t.position(stamp) for t in tracks])
+    distance = np.hypot(*(centroids[:, None, :] - predicted[None, :, :]).transpose(2, 0, 1))
+    overlap = np.zeros(distance.shape)
+    inside = np.zeros(distance.shape)
+    boxes = np.array([c.shape.bounds for c in plain])
+    for col, track in enumerate(tracks):
+        vx, vy = track.velocity()
+        for seen in track.fresh(rules.outline_age):
+            dx, dy = vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)
+            low_x, low_y, high_x, high_y = seen.shape.bounds
+            near = (
+                (boxes[:, 0] < high_x + dx)
+                & (boxes[:, 2] > low_x + dx)
+                & (boxes[:, 1] < high_y + dy)
+                & (boxes[:, 3] > low_y + dy)
+            )
+            for row in np.flatnonzero(near).tolist():
+                shape = plain[row].shape
+                shared = overlap_area(shape, seen.shape, (dx, dy))
+                if shared > 0:
+                    overlap[row, col] = max(overlap[row, col], shared / min(shape.area, seen.shape.area))
+                    inside[row, col] = max(inside[row, col], shared / shape.area)
+    allowed = (distance <= rules.gate) | (overlap >= rules.min_overlap)
+    cost = np.minimum(distance / rules.gate, 2.0) + (1.0 - overlap)
+    return np.where(allowed, cost, _NO), inside
+
+
+def _piece_of(
+    candidate: Candidate, inside: np.ndarray, joined: dict[int, Candidate], rules: Rules
+) -> int | None:
+    """The track (column) this unmatched candidate is a second piece of, if any."""
+    best: int | None = None
+    for col, other in joined.items():
+        if inside[col] < rules.merge_overlap or (best is not None and inside[col] <= inside[best]):
+            continue
+        if _gap(candidate.shape, other.shape, rules.merge_gap) <= rules.merge_gap:
+            best = col
+    return best
+
+
+def _gap(a: Shape, b: Shape, limit: float) -> float:
+    """Distance between two outlines; their bounds' distance when that exceeds ``limit`` already."""
+    dx = max(a.bounds[0] - b.bounds[2], b.bounds[0] - a.bounds[2], 0.0)
+    dy = max(a.bounds[1] - b.bounds[3], b.bounds[1] - a.bounds[3], 0.0)
+    if math.hypot(dx, dy) > limit:
+        return math.hypot(dx, dy)
+    return float(a.polygon().distance(b.polygon()))
