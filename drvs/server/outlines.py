@@ -75,17 +75,16 @@ def clean(outline: Sequence[Sequence[float]]) -> Shape | None:
     if not np.all(np.isfinite(points)) or np.abs(points).max() > LIMIT:
         return None
     # Shoelace about the first point (keeps precision far from the origin); either orientation.
-    x = points[:, 0] - points[0, 0]
-    y = points[:, 1] - points[0, 1]
-    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+    here = points - points[0]
+    after = np.roll(here, -1, axis=0)
+    cross = here[:, 0] * after[:, 1] - after[:, 0] * here[:, 1]
     twice_area = float(cross.sum())
     if abs(twice_area) < 2 * MIN_AREA:
         return None
-    cx = float(((x + np.roll(x, -1)) * cross).sum()) / (3 * twice_area) + points[0, 0]
-    cy = float(((y + np.roll(y, -1)) * cross).sum()) / (3 * twice_area) + points[0, 1]
+    cx, cy = ((here + after) * cross[:, None]).sum(axis=0) / (3 * twice_area) + points[0]
     low, high = points.min(axis=0), points.max(axis=0)
     bounds = (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
-    return Shape(points, (cx, cy), abs(twice_area) / 2, bounds)
+    return Shape(points, (float(cx), float(cy)), abs(twice_area) / 2, bounds)
 
 
 def _from_polygon(polygon: Polygon) -> Shape | None:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment  # type: ignore[import]  # scipy ships no type information
 
-from drvs.server.outlines import Shape, combine, overlap_area
+from drvs.server.outlines import Shape, combine, overlap_area, union_outline
 from drvs.server.track_motion import Motion
 
 __all__ = ['Association', 'Candidate', 'Rules', 'Seen', 'Track', 'associate']
@@ -45,6 +45,7 @@ class Track:
     last_seen: float
     seen: dict[str, Seen] = field(default_factory=dict)  # camera -> its newest outline
     stationary: bool = False
+    fused: tuple[float, np.ndarray] | None = None  # the fused outline at a stamp; None after an update
 
     def velocity(self) -> Point:
         if self.stationary:
@@ -58,6 +59,19 @@ class Track:
     def fresh(self, age: float) -> list[Seen]:
         """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
         return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
+
+    def outline(self, at: float, age: float) -> tuple[Point, ...]:
+        """The union of its fresh outlines, each moved along the velocity to ``at`` (counter-clockwise)."""
+        vx, vy = self.velocity()
+        if self.fused is None:  # computed at last_seen once, then moved as a whole
+            stamp = self.last_seen
+            moves = [
+                (seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)))
+                for seen in self.fresh(age)
+            ]
+            self.fused = (stamp, np.array(union_outline(moves)))
+        stamp, points = self.fused
+        return tuple((x, y) for x, y in (points + (vx * (at - stamp), vy * (at - stamp))).tolist())
 
 
 @dataclass
@@ -134,7 +148,7 @@ def associate(
     for row, candidate in enumerate(plain):
         if id(candidate) in taken:
             continue
-        col = _piece_of(candidate, inside[row], joined, rules)
+        col = _piece_of(stamp, candidate, inside[row], joined, alive, rules)
         if col is None:
             result.fresh.append(candidate)
         else:
@@ -151,48 +165,86 @@ def _costs(
     stamp: float, plain: list[Candidate], tracks: list[Track], rules: Rules
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cost (candidates x tracks): distance to the prediction over the gate plus one minus the
-    overlap (shared area / the smaller area, the most with any camera's outline of the track);
-    ``_NO`` outside the gate without overlap. Also how much of each candidate lies inside each
-    track (shared area / the candidate's area)."""
+    overlap; ``_NO`` outside the gate without overlap. Also how much of each candidate lies inside
+    each track. Both on bounding boxes (see :func:`_box_overlaps`), except where an outline beyond
+    the gate would join a track by overlap alone: there the areas of the outlines decide."""
     centroids = np.array([c.shape.centroid for c in plain])
     predicted = np.array([t.position(stamp) for t in tracks])
     distance = np.hypot(*(centroids[:, None, :] - predicted[None, :, :]).transpose(2, 0, 1))
-    overlap = np.zeros(distance.shape)
-    inside = np.zeros(distance.shape)
-    boxes = np.array([c.shape.bounds for c in plain])
-    for col, track in enumerate(tracks):
-        vx, vy = track.velocity()
-        for seen in track.fresh(rules.outline_age):
-            dx, dy = vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)
-            low_x, low_y, high_x, high_y = seen.shape.bounds
-            near = (
-                (boxes[:, 0] < high_x + dx)
-                & (boxes[:, 2] > low_x + dx)
-                & (boxes[:, 1] < high_y + dy)
-                & (boxes[:, 3] > low_y + dy)
-            )
-            for row in np.flatnonzero(near).tolist():
-                shape = plain[row].shape
-                shared = overlap_area(shape, seen.shape, (dx, dy))
-                if shared > 0:
-                    overlap[row, col] = max(overlap[row, col], shared / min(shape.area, seen.shape.area))
-                    inside[row, col] = max(inside[row, col], shared / shape.area)
+    overlap, inside = _box_overlaps(stamp, plain, tracks, rules)
+    for row, col in zip(*np.nonzero((distance > rules.gate) & (overlap >= rules.min_overlap)), strict=True):
+        overlap[row, col], _ = _exact(stamp, plain[row].shape, tracks[col], rules)
     allowed = (distance <= rules.gate) | (overlap >= rules.min_overlap)
     cost = np.minimum(distance / rules.gate, 2.0) + (1.0 - overlap)
     return np.where(allowed, cost, _NO), inside
 
 
+def _box_overlaps(
+    stamp: float, plain: list[Candidate], tracks: list[Track], rules: Rules
+) -> tuple[np.ndarray, np.ndarray]:
+    """Overlap of each candidate's bounds with each track's (shared area / the smaller; the most
+    with any camera's fresh outline of the track, moved along its velocity), and shared area /
+    the candidate's. Vectorised: no shapely."""
+    boxes = np.array([c.shape.bounds for c in plain])
+    owners: list[int] = []
+    seen_boxes: list[tuple[float, float, float, float]] = []
+    for col, track in enumerate(tracks):
+        vx, vy = track.velocity()
+        for seen in track.fresh(rules.outline_age):
+            dx, dy = vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)
+            low_x, low_y, high_x, high_y = seen.shape.bounds
+            seen_boxes.append((low_x + dx, low_y + dy, high_x + dx, high_y + dy))
+            owners.append(col)
+    theirs = np.array(seen_boxes).reshape(-1, 4)
+    width = np.minimum(boxes[:, None, 2], theirs[None, :, 2]) - np.maximum(
+        boxes[:, None, 0], theirs[None, :, 0]
+    )
+    height = np.minimum(boxes[:, None, 3], theirs[None, :, 3]) - np.maximum(
+        boxes[:, None, 1], theirs[None, :, 1]
+    )
+    shared = np.clip(width, 0, None) * np.clip(height, 0, None)
+    mine_area = np.maximum((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]), 1e-12)[:, None]
+    their_area = np.maximum((theirs[:, 2] - theirs[:, 0]) * (theirs[:, 3] - theirs[:, 1]), 1e-12)[None, :]
+    overlap = np.zeros((len(plain), len(tracks)))
+    inside = np.zeros((len(plain), len(tracks)))
+    columns = np.array(owners, dtype=int)
+    np.maximum.at(overlap.T, columns, (shared / np.minimum(mine_area, their_area)).T)
+    np.maximum.at(inside.T, columns, (shared / mine_area).T)
+    return overlap, inside
+
+
+def _exact(stamp: float, shape: Shape, track: Track, rules: Rules) -> tuple[float, float]:
+    """The most ``shape`` overlaps any fresh outline of ``track`` (shared area / the smaller area),
+    and the most of it inside one (shared area / its area), by the outlines' areas."""
+    vx, vy = track.velocity()
+    overlap = inside = 0.0
+    for seen in track.fresh(rules.outline_age):
+        shared = overlap_area(shape, seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)))
+        overlap = max(overlap, shared / min(shape.area, seen.shape.area))
+        inside = max(inside, shared / shape.area)
+    return overlap, inside
+
+
 def _piece_of(
-    candidate: Candidate, inside: np.ndarray, joined: dict[int, Candidate], rules: Rules
+    stamp: float,
+    candidate: Candidate,
+    inside: np.ndarray,
+    joined: dict[int, Candidate],
+    tracks: list[Track],
+    rules: Rules,
 ) -> int | None:
-    """The track (column) this unmatched candidate is a second piece of, if any."""
-    best: int | None = None
+    """The track (column) this unmatched candidate is a second piece of, if any: the one it lies
+    most inside (by area), at least ``merge_overlap``, and ``merge_gap`` from its other piece at most."""
+    best: tuple[float, int] | None = None
     for col, other in joined.items():
-        if inside[col] < rules.merge_overlap or (best is not None and inside[col] <= inside[best]):
+        if inside[col] < rules.merge_overlap:  # bounds first: they cover at least the outline
+            continue
+        _, share = _exact(stamp, candidate.shape, tracks[col], rules)
+        if share < rules.merge_overlap or (best is not None and share <= best[0]):
             continue
         if _gap(candidate.shape, other.shape, rules.merge_gap) <= rules.merge_gap:
-            best = col
-    return best
+            best = (share, col)
+    return None if best is None else best[1]
 
 
 def _gap(a: Shape, b: Shape, limit: float) -> float:

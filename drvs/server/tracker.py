@@ -1,12 +1,13 @@
 """The fusion tracker: every camera's outlines, frame by frame, as one table of tracked objects in ``map``.
 
-:meth:`Tracker.frame` associates one camera frame's outlines with the tracks (gating on each
-track's position predicted to the frame's capture stamp, then a global assignment on a cost of
-centroid distance and outline overlap; a tag's label is a hard constraint), updates each track's
-constant-velocity filter (:mod:`drvs.server.track_motion`) and starts tracks for the rest;
-:meth:`Tracker.tracks` predicts them to a time. Cameras whose outlines disagree with their
-neighbours' are left out (:mod:`drvs.server.pose_check`). Stamps are arguments: no clock here.
-Not thread-safe (the caller holds a lock). The method and every constant: docs/fusion-tracking.md.
+:meth:`Tracker.frame` associates one camera frame's outlines with the tracks
+(:mod:`drvs.server.track_association`: gating on each track's position predicted to the frame's
+capture stamp, a global assignment on centroid distance and outline overlap, a tag's label as a
+hard constraint), updates each track's constant-velocity filter (:mod:`drvs.server.track_motion`)
+and starts tracks for the rest; :meth:`Tracker.tracks` predicts them to a time. Cameras whose
+outlines disagree with their neighbours' are left out (:mod:`drvs.server.pose_check`). Stamps are
+arguments: no clock here. Not thread-safe (the caller holds a lock). The method and every
+constant: docs/fusion-tracking.md.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 from shapely.geometry import Polygon, box
 
-from drvs.server.outlines import Shape, clean, contains, union_outline
+from drvs.server.outlines import Shape, clean, contains
 from drvs.server.pose_check import PoseCheck
 from drvs.server.track_association import Candidate, Rules, Seen, Track, associate
 from drvs.server.track_motion import Motion, MotionNoise
@@ -253,6 +254,7 @@ class Tracker:
         if seen is None or seen.stamp <= stamp:
             track.seen[camera] = Seen(stamp, candidate.shape)
         track.last_seen = max(track.last_seen, stamp)
+        track.fused = None
         track.evidence = 1 - (1 - track.evidence) * (1 - self._evidence(candidate.confidence))
         speed = track.motion.average_speed(self.settings.stationary_time)
         track.stationary = speed is not None and speed < self.settings.stationary_speed
@@ -322,10 +324,7 @@ class Tracker:
             if age > s.coast:
                 continue
             vx, vy = track.velocity()
-            fresh = track.fresh(s.outline_age)
-            outline = union_outline(
-                [(seen.shape, (vx * (at - seen.stamp), vy * (at - seen.stamp))) for seen in fresh]
-            )
+            outline = track.outline(at, s.outline_age)
             if region is not None and not _overlaps(outline, region):
                 continue
             freshness = min(1.0, 1.0 - age / s.coast)
