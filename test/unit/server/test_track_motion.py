@@ -1,11 +1,9 @@
 """A track's constant-velocity filter, with late measurements put in their place."""
 
-import doctest
 import random
 
 import pytest
 
-import drvs.server.outlines
 from drvs.server.track_motion import Motion, MotionNoise
 
 NOISE = MotionNoise(acceleration=1.0, initial_speed=1.5)
@@ -57,7 +55,3 @@ def test_average_speed_needs_a_track_as_old_as_the_span():
     assert motion.average_speed(1.0) is None
     motion, _ = run(measurements(count=25), window=1.5)
     assert motion.average_speed(1.0) == pytest.approx(1.118, abs=0.15)
-
-
-def test_outline_doctests():
-    assert doctest.testmod(drvs.server.outlines).failed == 0

@@ -24,7 +24,7 @@ def ticks(seconds, start=0.0, rate=RATE):
     return [start + i / rate for i in range(round(seconds * rate))]
 
 
-def ids_near(tracker, at, x, y, within=0.3):
+def ids_near(tracker, at, x, y, within):
     return [t.track_id for t in tracker.tracks(at) if math.dist(t.position, (x, y)) <= within]
 
 
@@ -34,16 +34,12 @@ def ids_near(tracker, at, x, y, within=0.3):
 @pytest.mark.parametrize('lateral', [0.0, 0.3])
 def test_crossing_paths_keep_their_ids(lateral):
     tracker = Tracker()
-    first = {}
     for t in ticks(4.0):
         a, b = (t, 0.0), (4.0 - t, lateral)  # through each other at t = 2 s, 1 m/s each
         tracker.frame('cam', t, [seen(*a), seen(*b)])
-        if not first:
-            first = {'a': ids_near(tracker, t, *a), 'b': ids_near(tracker, t, *b)}
-        assert ids_near(tracker, t, *a, within=0.05) in ([], first['a']) or abs(t - 2.0) < 0.15
+        if abs(t - 2.0) > 0.15:  # apart: each id where its person is
+            assert (ids_near(tracker, t, *a, within=0.1), ids_near(tracker, t, *b, within=0.1)) == ([1], [2])
     assert len(tracker) == 2
-    assert ids_near(tracker, 3.9, 3.9, 0.0) == first['a']
-    assert ids_near(tracker, 3.9, 0.1, lateral) == first['b']
 
 
 def test_an_occlusion_shorter_than_the_coast_time_keeps_the_id():
@@ -214,8 +210,8 @@ def test_a_camera_with_a_wrong_pose_is_flagged_and_left_out():
         tracker.frame('b', t + 0.02, [seen(x, y + 0.05) for x, y in objects])
         results.append(tracker.frame('c', t + 0.04, [seen(x + 0.8, y) for x, y in objects]))  # 0.8 m off
         assert len(tracker) == 5  # no ghosts
-    assert all(r.ignored for r in results[2:])
     assert results[-1] == FrameResult(0, 0, 0, True)
+    assert all(r.ignored for r in results)  # flagged at its first frame
     assert list(tracker.flagged()) == ['c']
     assert tracker.flagged()['c'] == (
         "its outlines are 0.80 m from its neighbours' (median of 5 shared objects; tolerance 0.3 m)"
