@@ -320,6 +320,46 @@ def test_degenerate_outlines_are_skipped_and_counted():
     assert result.associated == 1
 
 
+def test_random_input_never_raises():
+    tracker = Tracker(TrackerSettings(max_tracks=30))
+    rng = random.Random(11)
+    values = [0.0, 1.0, -1.0, 0.5, 1e-9, 1e9, float('nan'), float('inf'), -float('inf')]
+
+    def coordinate():
+        return rng.choice(values) if rng.random() < 0.2 else rng.uniform(-10, 10)
+
+    for i in range(300):
+        outlines = [
+            Observation(
+                tuple((coordinate(), coordinate()) for _ in range(rng.randint(0, 6))),
+                rng.choice(['', '', 'tag:1', 'tag:2']),
+                rng.choice(values),
+            )
+            for _ in range(rng.randint(0, 8))
+        ]
+        stamp = rng.choice([0.1 * i, 0.1 * i - 0.5, 0.1 * i + 3.0, float('nan')])
+        field = rng.choice([None, square(0, 0, 10), [(0, 0), (1, float('nan')), (0, 1)], []])
+        result = tracker.frame(rng.choice('abc'), stamp, outlines, field_of_view=field)
+        fused = 0 if result.ignored else result.associated + result.created + result.untracked
+        assert fused + result.skipped == len(outlines)
+        for view in tracker.tracks(0.1 * i, region=(-5, -5, 5, 5)):
+            assert 0.0 <= view.confidence <= 1.0
+        tracker.expire(0.1 * i)
+    assert len(tracker) <= 30
+
+
+def test_a_frame_older_than_the_reorder_window_joins_without_moving_the_track():
+    tracker = Tracker()
+    for t in ticks(3.0):
+        tracker.frame('a', t, [seen(1.0, 1.0)])
+    before = tracker.tracks(2.9)[0]
+    result = tracker.frame('b', 0.5, [seen(1.3, 1.0)])  # 2.4 s late
+    after = tracker.tracks(2.9)[0]
+    assert (result.associated, after.position, after.last_seen) == (1, before.position, 2.9)
+    assert after.seen_by == ('a',)  # since the coast time before 2.9
+    assert tracker.tracks(2.9, since=0.0)[0].seen_by == ('a', 'b')
+
+
 def test_settings_are_checked():
     with pytest.raises(ValueError, match=r'^gate: must be a positive number, got -1.0$'):
         TrackerSettings(gate=-1.0)
