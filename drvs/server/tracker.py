@@ -185,7 +185,7 @@ class Tracker:
         """All outlines one camera found in one frame captured at ``stamp`` (capture time; frames of
         different cameras arrive out of stamp order and with clock skew). ``field_of_view``: where
         this camera looks; a track predicted inside it that gets no outline counts as a miss."""
-        observations = list(observations or ())
+        observations = [] if observations is None else list(observations)
         if not isinstance(stamp, int | float) or not math.isfinite(stamp):
             return FrameResult(0, 0, 0, False, skipped=len(observations))
         candidates, skipped = self._candidates(observations)
