@@ -400,7 +400,7 @@ def rendered(tmp_path_factory):
 
 
 def pose_errors(found, label, truth):
-    (outline,) = [outline for outline, found_label in found if found_label == label]
+    (outline,) = [item.outline for item in found if item.label == label]
     assert len(outline) == 4
     x, y, yaw = tag_pose(outline)
     return math.hypot(x - truth[0], y - truth[1]), abs(
@@ -415,12 +415,12 @@ def test_a_rendered_tag_gives_the_robot_pose_within_1_cm_and_2_degrees(rendered,
     heights = {world.robot.tag.label: world.robot.size[2], world.station.tag.label: world.station.size[2]}
     algorithms = AlgorithmSet([AprilTag(heights=heights)])
     found = locate_labelled(frame, parse_algorithm('apriltag:tag36h11:3', algorithms), REGION)
-    assert [label for _, label in found] == ['tag36h11:3']
+    assert [item.label for item in found] == ['tag36h11:3']
     distance, heading = pose_errors(found, 'tag36h11:3', truth)
     assert distance <= 0.01 and heading <= 2.0, (distance, heading)
     # The station's tag too, at its own height and yaw.
     found = locate_labelled(frame, parse_algorithm('apriltag:tag36h11', algorithms), REGION)
-    assert sorted(label for _, label in found) == ['tag36h11:3', 'tag36h11:5']
+    assert sorted(item.label for item in found) == ['tag36h11:3', 'tag36h11:5']
     distance, heading = pose_errors(found, 'tag36h11:5', (*STATION['position'], STATION['yaw']))
     assert distance <= 0.01 and heading <= 2.0, (distance, heading)
 
