@@ -157,7 +157,9 @@ def colour_errors(frame, world, bodies: dict, region) -> dict:
     found = {}
     for role, role_bodies in bodies.items():
         algorithm = parse_algorithm(world.colour_models[role])
-        outlines = [Polygon(o) for o, *_ in in_region(project_objects(frame, algorithm.detect(frame)), region)]
+        outlines = [
+            Polygon(o) for o, *_ in in_region(project_objects(frame, algorithm.detect(frame)), region)
+        ]
         for body in role_bodies:
             truth = Polygon(body.footprint())
             seen = [o for o in outlines if o.intersects(truth)]

@@ -246,10 +246,11 @@ def decision_margin(gray: np.ndarray, corners: np.ndarray, family: str, tag_id: 
     the threshold lies midway between the mean grey of the cells that should be black
     (the border and the 0 bits) and of those that should be white. A cell's margin is its
     distance from the threshold towards the colour the code expects, as a share of half
-    that contrast (1: as clear as the tag's mean; 0: on the threshold; below 0: read
-    wrong, a bit aruco corrected). The confidence is (1 + the smallest margin) / 2: 1 for
-    a sharp, evenly lit tag; down towards 0.5 as blur, too few pixels, glare, a shadow's
-    edge or noise pull a cell towards the threshold; below 0.5 when a bit was read wrong.
+    that contrast (1: as clear as the tag's mean; 0: on the threshold; -1: the wrong
+    colour). The confidence is (1 + the smallest margin) / 2: 1 for a sharp, evenly lit
+    tag; down towards 0.5 as blur, too few pixels, glare, a shadow's edge or noise pull a
+    cell towards the threshold; below 0.5 only for a cell that reads wrong here (aruco
+    corrects no bit of the AprilTag families, so it read every bit of a tag it reports).
     After AprilTag 3's ``decision_margin`` (OpenCV 4.6's aruco reports none).
     """
     import cv2
