@@ -296,7 +296,7 @@ class VisionSystemNode:
         if job.algorithm.algorithm.streaming:
             job.algorithm.algorithm.observe(frame)  # the model must have seen the frame it judges
         found = in_region(self._detections.on_floor(frame, job.algorithm), job.region)
-        outlines = [outline for outline, _ in found]
+        outlines = [outline for outline, *_ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
         if debug_logged():

@@ -1,7 +1,8 @@
 """A vision system's standing requests ("watches"): which to evaluate when, and what to send back.
 
 Watches keyed by (``callback_service``, ``request_id``), granted and expired; one frame
-for every watch due; with ``changes_only``, a callback only when the outlines changed.
+for every watch due; with ``changes_only``, a callback only when the outlines or labels
+changed (not the confidence).
 No ROS and no clock of its own (calls take ``now``); one lock, ``WatchRunner._lock``. The
 service: docs/nodes/vision_system.md; the rules and why: docs/design.md ("Vision systems").
 
@@ -39,8 +40,9 @@ logger = logging.getLogger('rosout.' + __name__)
 __all__ = ['Grant', 'Terms', 'WatchRunner', 'outline_distance', 'outlines_changed', 'parse_watch']
 
 Box = tuple[float, float, float, float]
-Found = Sequence[tuple[Sequence[Sequence[float]], str]]
-"""What an evaluation found: (outline, label) pairs, each outline a ring of (x, y) in metres."""
+Found = Sequence[tuple[Sequence[Sequence[float]], str] | tuple[Sequence[Sequence[float]], str, float]]
+"""What an evaluation found: (outline, label[, confidence]) tuples, each outline a ring of (x, y) in
+metres (:class:`drvs.vision.pipeline.Located`); changes are judged on outlines and labels only."""
 
 
 @dataclass(frozen=True)
@@ -268,7 +270,9 @@ def outlines_changed(old: Found, new: Found, tolerance: float) -> bool:
     farther than ``tolerance`` (:func:`outline_distance`) from the object of ``old``
     with the same label it is paired with. Pairs are made nearest first, so the
     order in which objects are listed does not matter. A labelled object is one the
-    algorithm identifies (a tag): its corners are compared in order.
+    algorithm identifies (a tag): its corners are compared in order. A confidence
+    (a third member) is not compared: it varies from frame to frame with the object
+    standing still.
 
     >>> square = [(0, 0), (1, 0), (1, 1), (0, 1)]
     >>> moved = [(x + 0.1, y) for x, y in square]
@@ -277,11 +281,11 @@ def outlines_changed(old: Found, new: Found, tolerance: float) -> bool:
     >>> outlines_changed([(square, '')], [(moved, '')], 0.03)
     True
     """
-    if len(old) != len(new) or sorted(label for _, label in old) != sorted(label for _, label in new):
+    if len(old) != len(new) or sorted(found[1] for found in old) != sorted(found[1] for found in new):
         return True
-    for label in {label for _, label in new}:
-        olds = [outline for outline, lab in old if lab == label]
-        news = [outline for outline, lab in new if lab == label]
+    for label in {found[1] for found in new}:
+        olds = [found[0] for found in old if found[1] == label]
+        news = [found[0] for found in new if found[1] == label]
         pairs = sorted(
             (outline_distance(o, n, ordered=bool(label)), i, j)
             for i, o in enumerate(olds)

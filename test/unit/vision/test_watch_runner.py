@@ -270,3 +270,14 @@ def test_tags_compare_their_corners_in_order():
     assert not outlines_changed([(tag, '')], [(turned, '')], 0.03)
     assert outlines_changed([(tag, 'tag36h11:3')], [(turned, 'tag36h11:3')], 0.03)
     assert outlines_changed([(tag, 'tag36h11:3')], [(tag, 'tag36h11:4')], 0.03)  # another tag
+
+
+def test_changes_only_is_not_fooled_by_confidence_jitter(runner):
+    """The confidence (a third member) varies from frame to frame; only outlines and labels count."""
+    runner.stand(terms(changes_only=True), 30.0, now=0.0)
+    first = [(square(1, 1), '', 0.9)]
+    assert evaluate_due(runner, 0.0, {'w': first}) == {'w': first}
+    assert evaluate_due(runner, 1.0, {'w': [(square(1, 1), '', 0.4)]}) == {'w': None}
+    assert not outlines_changed([(square(1, 1), '', 0.9)], [(square(1, 1), '')], 0.03)
+    moved = [(square(1.1, 1), '', 0.4)]
+    assert evaluate_due(runner, 2.0, {'w': moved}) == {'w': moved}
