@@ -363,6 +363,7 @@ class DrvsServer:
             region_of_interest=request.region_of_interest,
             callback_service=self.fusion.service_name,
             request_id=wire_id,
+            fused=True,  # the vision system calls back even when it finds nothing
         )
 
         def settled(vision_system: str, reply) -> None:
