@@ -67,6 +67,7 @@ STATS_FIELDS = (
     'fused_late',
     'fused_deliveries',
     'fused_failures',
+    'fused_untracked',
     'tracks',
 )
 """The counters of drvs/ServerStats (``watches``: the number standing)."""
