@@ -108,6 +108,9 @@ class RunRecorder:
         self._robot_position: dict[str, tuple[float, float]] = {}
         # The bodies whose ground truth the tracking metrics need over time: robots and humans.
         self._moving = {r.name for r in world.robots} | {o.name for o in world.objects if o.moving}
+        # Tracking counts from the first sample on: a bag has tracks from before the live recorder
+        # subscribed, and both must measure the same periods.
+        self._sampled = False
 
     @property
     def closed(self) -> bool:
@@ -170,10 +173,11 @@ class RunRecorder:
 
     # -- tracking: ground truth and the fused tracks (drvs.sim.tracking) ----------------------------
     def on_poses(self, msg: BodyPoses) -> None:
-        """The moving bodies' poses, every :data:`TRUTH_STEP`, for the tracking metrics."""
+        """The moving bodies' poses, every :data:`TRUTH_STEP`, for the tracking metrics (from the
+        first sample on, as every tracking message)."""
         stamp, poses = body_poses_from_msg(msg)
         with self._lock:
-            if self._closed:
+            if self._closed or not self._sampled:
                 return
             for name in self._moving & poses.keys():
                 samples = self.record.truth.setdefault(name, [])
@@ -194,7 +198,7 @@ class RunRecorder:
             for algorithm, obj in zip(msg.algorithms, msg.objects, strict=True)
         )
         with self._lock:
-            if not self._closed:
+            if self._sampled and not self._closed:
                 self.record.track_periods.append(TrackPeriod(msg.header.stamp.to_sec(), tracks))
 
     def on_status(self, msg: RobotStatus, robot: str) -> bool:
@@ -279,6 +283,7 @@ class RunRecorder:
             self.record.cpu = cpu_summary(msg.cpu)
             self.record.wall_seconds = msg.wall_seconds
             self._closed = msg.final
+            self._sampled = True
 
     def _update_elapsed(self) -> None:
         """Each robot's seconds from the first status to its newest counted one (under the lock)."""

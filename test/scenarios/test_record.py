@@ -286,6 +286,7 @@ def a_fleet_run(world):
     return [
         ('/robot1/status', status(1.0, 'localising'), False),
         ('/drvs/stats', server_stats(2), False),
+        ('/drvs/objects', tracked(0.8, [(robots, 9, (3.0, 3.0))]), False),  # before the first sample
         ('/world_sim/ground_truth', at(0.5, (1.0, 3.0), (1.0, 1.0)), False),
         ('/drvs/registry', registry(), True),
         ('/world_sim/ground_truth', at(1.5, (1.0, 3.0), (1.0, 1.0)), True),
