@@ -29,7 +29,7 @@ from drvs.server import answers
 from drvs.server.dispatch import Busy, Dispatcher
 from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
-from drvs.server.rate_limit import RateLimiter
+from drvs.common.rate_limit import RateLimiter
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
