@@ -41,7 +41,7 @@ from drvs.gateway.body import (
 from drvs.gateway.params import GatewaySettings
 from drvs.gateway.routes import ROUTES, Route, openapi
 from drvs.gateway.tokens import OPEN, Forbidden, Grant, Tokens, Unauthorized
-from drvs.gateway.watches import END, GatewayWatch, WatchHub
+from drvs.gateway.watches import END, GatewayWatch, Listener, WatchHub
 
 __all__ = ['COUNTERS', 'Gateway', 'TICK']
 
@@ -49,6 +49,8 @@ logger = logging.getLogger('rosout.' + __name__)
 
 TICK = 0.25
 """Seconds between two looks at the watches (renewals, withdrawals)."""
+DISCONNECT_CHECK = 0.5
+"""Seconds between two looks, on an idle event stream, whether its client went away."""
 MAX_CALLBACKS = 1000
 """Callbacks one ``POST /v1/detect`` answer holds at most."""
 COUNTERS = ('requests', 'refused', 'callbacks', 'events', 'dropped', 'no_server', 'errors')
@@ -374,20 +376,36 @@ class Gateway:
         try:
             await stream.prepare(request)
             await self._write(request, stream, sse.RETRY)
-            while True:
-                wake.clear()
-                dropped = listener.dropped
-                for event in listener.take():
-                    await self._write(request, stream, sse.encode(event))
-                    if event.kind == END:
-                        return stream
-                self.counters.add(dropped=dropped)
-                try:
-                    await asyncio.wait_for(wake.wait(), self.settings.keep_alive)
-                except TimeoutError:
-                    await self._write(request, stream, sse.KEEP_ALIVE)
+            await self._stream(request, stream, listener, wake)
+        except ConnectionResetError:  # the client went away
+            pass
         finally:
             self.hub.leave(listener)
+        return stream
+
+    async def _stream(
+        self, request: web.Request, stream: web.StreamResponse, listener: Listener, wake: asyncio.Event
+    ) -> None:
+        """Write ``listener``'s events to ``stream`` until the watch ends; keep-alives when idle."""
+        while True:
+            wake.clear()
+            dropped = listener.dropped
+            for event in listener.take():
+                await self._write(request, stream, sse.encode(event))
+                if event.kind == END:
+                    return
+            self.counters.add(dropped=dropped)
+            idle = self.clock()
+            while not wake.is_set():
+                if request.transport is None or request.transport.is_closing():
+                    return  # the client went away (aiohttp 3.8 does not cancel the handler)
+                if self.clock() - idle >= self.settings.keep_alive:
+                    await self._write(request, stream, sse.KEEP_ALIVE)
+                    idle = self.clock()
+                try:
+                    await asyncio.wait_for(wake.wait(), DISCONNECT_CHECK)
+                except TimeoutError:
+                    pass
 
     async def _write(self, request: web.Request, stream: web.StreamResponse, data: bytes) -> None:
         """Write to a stream; a client that takes none of it for two keep-alive periods is cut off."""

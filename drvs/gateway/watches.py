@@ -181,7 +181,8 @@ class WatchHub:
 
     def listen(self, watch_id: str, last_event_id: int | None = None) -> Listener:
         """A new listener of the watch ``watch_id``, given every buffered event after
-        ``last_event_id`` (with a ``status`` event first when some are no longer buffered).
+        ``last_event_id`` (with a ``status`` event first when some are no longer buffered); without
+        one, every buffered event (those of a watch nobody listened to yet).
 
         :raises KeyError: no such watch.
         """
@@ -205,6 +206,8 @@ class WatchHub:
                     )
                 )
             replay.extend(event for event in watch.buffer if event.id > last_event_id)
+        else:
+            replay.extend(watch.buffer)
         listener.replay(replay)
         watch.listeners.append(listener)
         watch.quiet_since = None
