@@ -16,6 +16,7 @@ from drvs.gateway.params import GatewaySettings
 from drvs.gateway.routes import ROUTES, openapi
 from drvs.gateway.tokens import Tokens, make_entry
 from drvs.testing.clock import ManualClock
+from drvs.testing.hostile_bodies import random_body
 
 REGION = {'min_x': 0, 'min_y': 0, 'max_x': 4, 'max_y': 4}
 COLOUR = 'colour:0,0,150,80,80,255'
@@ -365,44 +366,6 @@ def test_read_routes():
         assert (missing.status, (await missing.json())['error']) == (404, 'NOT_FOUND')
 
     serve(test)
-
-
-def random_body(rng, path):
-    """A JSON body, often almost right, often wrong in one field, sometimes garbage."""
-    choice = rng.random()
-    if choice < 0.15:
-        return bytes(rng.randrange(256) for _ in range(rng.randrange(40)))
-    values = [
-        None,
-        True,
-        -1,
-        0,
-        1e308,
-        2.5,
-        'x',
-        '',
-        [],
-        {},
-        [1, 2],
-        {'a': 1},
-        COLOUR,
-        'motion',
-        '9:9',
-        'a' * 300,
-    ]
-    body = {'algorithm': COLOUR, 'region': dict(REGION), **({'wait': 0} if path == '/v1/detect' else {})}
-    for _ in range(rng.randrange(4)):
-        key = rng.choice(
-            ['algorithm', 'region', 'wait', 'fused', 'period', 'zzz', 'region.min_x', 'region.max_y']
-        )
-        if key.startswith('region.') and isinstance(body.get('region'), dict):
-            body['region'][key.split('.')[1]] = rng.choice(values)
-        else:
-            body[key] = rng.choice(values)
-    text = json.dumps(body)
-    if choice > 0.9:
-        text = text[: rng.randrange(len(text))]
-    return text.encode()
 
 
 def test_random_bodies_get_clean_answers_and_the_gateway_keeps_serving():
