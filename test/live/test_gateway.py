@@ -3,7 +3,11 @@ asked over HTTP as any client would (the standard library only)."""
 
 import http.client
 import json
+import os
 import random
+import re
+import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -12,6 +16,8 @@ import pytest
 
 from drvs.gateway.tokens import add_token
 from drvs.testing import free_port, wait_for
+from drvs.testing.doc_examples import commands, shell_blocks
+from drvs.testing.harness import REPO
 from drvs.testing.hostile_bodies import random_body
 
 pytestmark = pytest.mark.shared_master  # see test/conftest.py
@@ -246,3 +252,24 @@ def hostile(site, count):
     status, _, health = client('GET', '/v1/health')
     assert status == 200 and health['gateway']['errors'] == 0 and health['gateway']['watches'] == 0
     assert site['gateway'].running()
+
+
+def test_the_docs_examples_run_as_written(site, tmp_path):
+    """docs/gateway.md's Python client and its first two curl commands, against this gateway."""
+    page = (REPO / 'docs' / 'gateway.md').read_text()
+    (python,) = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)
+    env = {**os.environ, 'DRVS_GATEWAY': site['url'], 'DRVS_TOKEN': site['full'], 'TOKEN': site['full']}
+    script = tmp_path / 'client.py'
+    script.write_text(python)
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith('/cam1/detect_object_boundary sees an object at {')
+    assert lines[-3:] == ['watch: 1 object(s)'] * 3
+    curl = [block for block in shell_blocks(REPO / 'docs' / 'gateway.md') if block.startswith('curl')][0]
+    detect, coverage = (command for command, _ in commands(curl)[:2])
+    for command in (detect, coverage):
+        command = command.replace('http://127.0.0.1:8080', site['url'])
+        done = subprocess.run(['bash', '-c', command], env=env, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert 'error' not in json.loads(done.stdout), done.stdout

@@ -20,7 +20,15 @@ import pytest
 
 from drvs.testing.harness import REPO
 
-PURE = ('drvs.common', 'drvs.server', 'drvs.vision', 'drvs.robot', 'drvs.gateway', 'drvs.sim', 'drvs.algorithms')
+PURE = (
+    'drvs.common',
+    'drvs.server',
+    'drvs.vision',
+    'drvs.robot',
+    'drvs.gateway',
+    'drvs.sim',
+    'drvs.algorithms',
+)
 ROLES = ('drvs.server', 'drvs.vision', 'drvs.robot', 'drvs.gateway')
 COMMON = 'drvs.common'
 COMMON_MAY_IMPORT = ('drvs.common', 'drvs.algorithms')
