@@ -24,7 +24,7 @@ from shapely.geometry import Polygon
 
 from drvs.common.counters import Counters
 from drvs.common.rate_limit import RateLimiter
-from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED, name
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED, is_temporary, name
 from drvs.common.validation import region_geometry
 from drvs.gateway import answers, sse
 from drvs.gateway.answers import HttpAnswer
@@ -516,15 +516,22 @@ class Gateway:
             )
 
     async def _withdraw(self, watch: GatewayWatch) -> None:
-        """Withdraw the DRVS watch (duration 0); a failure is logged: the DRVS watch then expires."""
-        try:
-            ack = await self._call(self.drvs.watch, watch.body, watch.request_id, 0.0)
-        except NoServer as error:
-            logger.warning(
-                'withdrawing the DRVS watch %s: %s (it expires by itself)', watch.request_id, error
-            )
-            return
-        if ack.status != ACCEPTED:
-            logger.warning(
-                'withdrawing the DRVS watch %s: %s: %s', watch.request_id, name(ack.status), ack.message
-            )
+        """Withdraw the DRVS watch (duration 0), retrying a temporary refusal while it stands; a
+        failure is logged: the DRVS watch then expires by itself within ``~watch_duration``."""
+        give_up = self.clock() + self.settings.watch_duration
+        while True:
+            try:
+                ack = await self._call(self.drvs.watch, watch.body, watch.request_id, 0.0)
+            except NoServer as error:
+                logger.warning(
+                    'withdrawing the DRVS watch %s: %s (it expires by itself)', watch.request_id, error
+                )
+                return
+            if ack.status == ACCEPTED:
+                return
+            if not is_temporary(ack.status) or self.clock() + ack.retry_after >= give_up:
+                logger.warning(
+                    'withdrawing the DRVS watch %s: %s: %s', watch.request_id, name(ack.status), ack.message
+                )
+                return
+            await asyncio.sleep(max(ack.retry_after, 0.01))

@@ -15,7 +15,7 @@ import urllib.request
 import pytest
 
 from drvs.gateway.tokens import add_token
-from drvs.testing import free_port, wait_for
+from drvs.testing import free_port, read_json_lines, wait_for
 from drvs.testing.doc_examples import commands, shell_blocks
 from drvs.testing.harness import REPO
 from drvs.testing.hostile_bodies import random_body
@@ -100,6 +100,7 @@ def site(module_ros, tmp_path_factory):
                 'answer': True,
                 'watch': True,
                 'objects': [BOX],
+                'renew': 3.0,
             },
         )
         url = f'http://127.0.0.1:{free_port()}'
@@ -125,6 +126,7 @@ def site(module_ros, tmp_path_factory):
 
         wait_for(ready, 30, 'the gateway and the camera in its registry', on_timeout=module_ros.describe)
         yield {
+            'folder': folder,
             'url': url,
             'client': client,
             'full': full,
@@ -172,6 +174,12 @@ def test_a_watch_streams_callbacks_resumes_with_last_event_id_and_is_withdrawn(s
     status, _, _ = client('DELETE', f'/v1/watches/{watch["id"]}')
     assert status == 204
     assert client('GET', watch['events'])[0] == 404
+    watches = site['folder'] / 'cam1.jsonl'
+    wait_for(
+        lambda: any(r['kind'] == 'watch' and r['duration'] == 0 for r in read_json_lines(watches)),
+        15,
+        'the DRVS watch withdrawn from the camera',
+    )
 
 
 @pytest.mark.parametrize(
@@ -228,6 +236,27 @@ def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
     assert 'is not a loopback address' in node.log()
 
 
+def test_the_docs_examples_run_as_written(site, tmp_path):
+    """docs/gateway.md's Python client and its first two curl commands, against this gateway."""
+    page = (REPO / 'docs' / 'gateway.md').read_text()
+    (python,) = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)
+    env = {**os.environ, 'DRVS_GATEWAY': site['url'], 'DRVS_TOKEN': site['full'], 'TOKEN': site['full']}
+    script = tmp_path / 'client.py'
+    script.write_text(python)
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith('/cam1/detect_object_boundary sees an object at {')
+    assert lines[-3:] == ['watch: 1 object(s)'] * 3
+    curl = [block for block in shell_blocks(REPO / 'docs' / 'gateway.md') if block.startswith('curl')][0]
+    detect, coverage = (command for command, _ in commands(curl)[:2])
+    for command in (detect, coverage):
+        command = command.replace('http://127.0.0.1:8080', site['url'])
+        done = subprocess.run(['bash', '-c', command], env=env, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert 'error' not in json.loads(done.stdout), done.stdout
+
+
 def test_random_bodies_get_clean_answers_and_the_gateway_keeps_serving(site):
     hostile(site, 2000)
 
@@ -253,23 +282,8 @@ def hostile(site, count):
     assert status == 200 and health['gateway']['errors'] == 0 and health['gateway']['watches'] == 0
     assert site['gateway'].running()
 
+    def drvs_watches():  # the server's own count, on /diagnostics once a second
+        server = client('GET', '/v1/health')[2]['server']
+        return int(server['values']['watches'])
 
-def test_the_docs_examples_run_as_written(site, tmp_path):
-    """docs/gateway.md's Python client and its first two curl commands, against this gateway."""
-    page = (REPO / 'docs' / 'gateway.md').read_text()
-    (python,) = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)
-    env = {**os.environ, 'DRVS_GATEWAY': site['url'], 'DRVS_TOKEN': site['full'], 'TOKEN': site['full']}
-    script = tmp_path / 'client.py'
-    script.write_text(python)
-    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
-    lines = done.stdout.splitlines()
-    assert lines[0].startswith('/cam1/detect_object_boundary sees an object at {')
-    assert lines[-3:] == ['watch: 1 object(s)'] * 3
-    curl = [block for block in shell_blocks(REPO / 'docs' / 'gateway.md') if block.startswith('curl')][0]
-    detect, coverage = (command for command, _ in commands(curl)[:2])
-    for command in (detect, coverage):
-        command = command.replace('http://127.0.0.1:8080', site['url'])
-        done = subprocess.run(['bash', '-c', command], env=env, capture_output=True, text=True, timeout=60)
-        assert done.returncode == 0, done.stderr
-        assert 'error' not in json.loads(done.stdout), done.stdout
+    wait_for(lambda: drvs_watches() == 0, 20, 'every DRVS watch withdrawn')

@@ -52,6 +52,7 @@ class FakeDrvs:
         self.no_server = None
         self.callbacks = [CALLBACK]
         self.calls = []
+        self.withdrawals = []  # answers to withdrawals, then ACCEPTED
         self.loop = self.gateway = None
 
     def _answer(self, request_id):
@@ -68,7 +69,9 @@ class FakeDrvs:
 
     def watch(self, body, request_id, duration):
         self.calls.append(('watch', request_id, duration))
-        return self._answer(request_id) if duration else Ack(ACCEPTED)
+        if not duration:
+            return self.withdrawals.pop(0) if self.withdrawals else Ack(ACCEPTED)
+        return self._answer(request_id)
 
     def registry(self):
         return REGISTRY
@@ -389,3 +392,17 @@ def test_random_bodies_get_clean_answers_and_the_gateway_keeps_serving():
         assert (await client.get('/v1/health')).status == 200
 
     serve(test, max_requests_per_s=1e6, burst=10**6, max_watches_per_token=10**4)
+
+
+def test_a_withdrawal_refused_for_now_is_retried():
+    async def test(client, drvs, gateway):
+        drvs.withdrawals = [
+            Ack(RATE_LIMITED, 'rate limited', retry_after=0.01),
+            Ack(BUSY, 'busy', retry_after=0.01),
+        ]
+        watch = await (await client.post('/v1/watches', json={'algorithm': COLOUR, 'region': REGION})).json()
+        assert (await client.delete(f'/v1/watches/{watch["id"]}')).status == 204
+        await until(lambda: [call[2] for call in drvs.calls].count(0.0) == 3)
+        assert drvs.withdrawals == []
+
+    serve(test)
