@@ -26,6 +26,7 @@ APT_PACKAGES=(
   python3-scipy  # make bench: its natural photograph (scipy.misc.face) for the image-sharing comparison
   python3-mypy  # make lint and test/project/test_types.py: types of the pure packages
   python3-pandas python3-xmltodict  # py-motmetrics' dependencies (the scenario report's tracking metrics)
+  python3-aiohttp  # drvs_gateway: DRVS over HTTP and Server-Sent Events (docs/gateway.md)
 )
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).
@@ -72,8 +73,8 @@ if [ ! -x "$venv/bin/python" ]; then
   /usr/bin/python3 -m venv --system-site-packages "$venv"
 fi
 py="$venv/bin/python"
-"$py" -c 'import rospy, cv2, numpy, shapely, yaml, cv_bridge, image_geometry, tf2_ros' 2>/dev/null \
-  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml/cv_bridge/image_geometry/tf2_ros; delete .venv and run again"
+"$py" -c 'import rospy, cv2, numpy, shapely, yaml, cv_bridge, image_geometry, tf2_ros, aiohttp' 2>/dev/null \
+  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml/cv_bridge/image_geometry/tf2_ros/aiohttp; delete .venv and run again"
 
 pip_missing=()
 for spec in "${PIP_PACKAGES[@]}"; do

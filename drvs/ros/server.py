@@ -14,6 +14,7 @@ from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmSet, default_algorithms
 from drvs.common.health import Health, server_health
+from drvs.common.rate_limit import RateLimiter
 from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, Refusal, name
 from drvs.common.validation import ValidationError, ros_name, watch_terms
 from drvs.msg import Registry as RegistryMsg
@@ -29,7 +30,6 @@ from drvs.server import answers
 from drvs.server.dispatch import Busy, Dispatcher
 from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
-from drvs.server.rate_limit import RateLimiter
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
