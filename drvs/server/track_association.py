@@ -178,19 +178,16 @@ def _single(
     A camera sees two people who stand close, one behind the other, as one blob: an outline that
     holds the predicted centroids of two tracks farther apart than either's size is such a blob, and
     its centroid (between them) is neither's position."""
+    bounds = np.array([c.shape.bounds for c in plain])
+    x, y = predicted[None, :, 0], predicted[None, :, 1]
+    in_box = (x >= bounds[:, 0:1]) & (x <= bounds[:, 2:3]) & (y >= bounds[:, 1:2]) & (y <= bounds[:, 3:4])
     kept = []
-    for candidate in plain:
-        low_x, low_y, high_x, high_y = candidate.shape.bounds
-        near = np.nonzero(
-            (predicted[:, 0] >= low_x)
-            & (predicted[:, 0] <= high_x)
-            & (predicted[:, 1] >= low_y)
-            & (predicted[:, 1] <= high_y)
-        )[0]
-        if len(near) >= 2:
-            near = near[contains(candidate.shape.points, predicted[near])]
-        if len(near) >= 2 and _apart([tracks[j] for j in near.tolist()], predicted[near]):
-            result.shared.append((candidate, [tracks[j] for j in near.tolist()]))
+    for candidate, near in zip(plain, in_box, strict=True):
+        cols = np.nonzero(near)[0]
+        if len(cols) >= 2:
+            cols = cols[contains(candidate.shape.points, predicted[cols])]
+        if len(cols) >= 2 and _apart([tracks[j] for j in cols.tolist()], predicted[cols]):
+            result.shared.append((candidate, [tracks[j] for j in cols.tolist()]))
         else:
             kept.append(candidate)
     return kept
