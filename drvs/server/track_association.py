@@ -1,6 +1,7 @@
 """Which outlines of one camera frame belong to which track: the fusion tracker's association.
 
-A labelled outline (a tag) joins the track with its label, wherever it is; the others are
+A labelled outline (a tag) joins the track with its label, wherever it is; an outline that holds
+the predicted centroids of two tracks apart (two people in one blob) joins none; the others are
 assigned globally (Hungarian, :func:`scipy.optimize.linear_sum_assignment`) on a cost of centroid
 distance to each track's prediction and outline overlap, within a gate or an overlap; an outline
 left over that lies mostly inside a track another outline of the frame joined, close to that
