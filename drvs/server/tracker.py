@@ -112,7 +112,7 @@ class FrameResult:
     """What :meth:`Tracker.frame` did with one frame's outlines."""
 
     associated: int
-    """Outlines that joined existing tracks (merged pieces included)."""
+    """Outlines that joined existing tracks (merged pieces and shared blobs included)."""
     created: int
     """Tracks started."""
     untracked: int
@@ -124,6 +124,9 @@ class FrameResult:
     finite number), or a second outline with a label this frame already had."""
     merged: int = 0
     """Of ``associated``: second pieces of one object (see ``TrackerSettings.merge_overlap``)."""
+    shared: int = 0
+    """Of ``associated``: outlines of several tracked objects at once (two people in one blob); they
+    neither move those tracks nor start one, and count as no miss."""
 
 
 @dataclass(frozen=True)
@@ -210,9 +213,19 @@ class Tracker:
             self._create(vision_system, stamp, candidate)
             created += 1
         if field_of_view is not None:
-            self._misses(stamp, field_of_view, {id(track) for _, track in pairs})
+            covered = {id(track) for _, tracks in association.shared for track in tracks}
+            self._misses(stamp, field_of_view, {id(track) for _, track in pairs} | covered)
         merged = sum(len(c.pieces) - 1 for c, _ in pairs if c.pieces)
-        return FrameResult(len(pairs) + merged, created, untracked, False, skipped=skipped, merged=merged)
+        shared = len(association.shared)
+        return FrameResult(
+            len(pairs) + merged + shared,
+            created,
+            untracked,
+            False,
+            skipped=skipped,
+            merged=merged,
+            shared=shared,
+        )
 
     def _candidates(self, observations: Sequence[Observation]) -> tuple[list[Candidate], int]:
         candidates: list[Candidate] = []
