@@ -565,6 +565,17 @@ def fused_table(sizes: dict, counts) -> str:
                 *cpu,
             ]
         )
+    duplicates = [count for count in counts if sizes[count]['fused']['objects'] != [1]]
+    note = (
+        '\nThe box is one object: more in a fused callback are duplicate tracks of it '
+        f'(at {", ".join(map(str, duplicates))} vision systems). Each vision system answers from its first '
+        'frame, taken when it was started for its size, so the frames fused in one round carry stamps up to '
+        'minutes apart, and the tracker starts new tracks for frames that far behind its tracks (vision '
+        'systems started together, their frames seconds apart, give one track); the duplicates add to the '
+        "server's work per frame.\n"
+        if duplicates
+        else ''
+    )
     return (
         '\nFused requests, same run, same server and vision systems, as many rounds: the robot gets one '
         'callback from the server once every vision system has called the server back. Request → fused '
@@ -584,6 +595,7 @@ def fused_table(sizes: dict, counts) -> str:
             ],
             rows,
         )
+        + note
     )
 
 
