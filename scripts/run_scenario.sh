@@ -265,7 +265,7 @@ xmlrpc.client.ServerProxy(os.environ["ROS_MASTER_URI"]).setParam("/run_scenario"
 
 if [ $record -eq 1 ]; then
   # Listed in DIR/pids as bag_recorder: stopped after every node. Ready once it subscribes to every topic.
-  topics="/drvs/registry /drvs/markers /drvs/stats /world_sim/poses /world_sim/ground_truth
+  topics="/drvs/registry /drvs/markers /drvs/stats /drvs/objects /world_sim/poses /world_sim/ground_truth
     /scenario_recorder/samples /diagnostics /tf /tf_static /rosout /clock"
   for robot in $robots; do topics+=" /$robot/status /$robot/path /$robot/map /$robot/pose /$robot/cmd_vel"; done
   for camera in $cameras; do topics+=" /$camera/stats"; done

@@ -25,6 +25,8 @@ APT_PACKAGES=(
   python3-rosbag
   python3-scipy  # make bench: its natural photograph (scipy.misc.face) for the image-sharing comparison
   python3-mypy  # make lint and test/project/test_types.py: types of the pure packages
+  python3-pandas python3-xmltodict  # py-motmetrics' dependencies (the scenario report's tracking metrics)
+  python3-aiohttp  # drvs_gateway: DRVS over HTTP and Server-Sent Events (docs/gateway.md)
 )
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).
@@ -34,8 +36,9 @@ for arg in "$@"; do
     *) printf 'setup: unknown option %s (the only one is --rviz)\n' "$arg" >&2; exit 2 ;;
   esac
 done
-# The test tools and the PyPI wheels, pinned to what the project was checked with.
-PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4)
+# The test tools and the PyPI wheels, pinned to what the project was checked with (motmetrics:
+# the tracking metrics of drvs/sim/tracking.py; 1.4.0 runs on Debian's numpy 1.24, scipy 1.10, pandas 1.5).
+PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4 motmetrics==1.4.0)
 
 say() { printf 'setup: %s\n' "$*"; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
@@ -70,8 +73,8 @@ if [ ! -x "$venv/bin/python" ]; then
   /usr/bin/python3 -m venv --system-site-packages "$venv"
 fi
 py="$venv/bin/python"
-"$py" -c 'import rospy, cv2, numpy, shapely, yaml, cv_bridge, image_geometry, tf2_ros' 2>/dev/null \
-  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml/cv_bridge/image_geometry/tf2_ros; delete .venv and run again"
+"$py" -c 'import rospy, cv2, numpy, shapely, yaml, cv_bridge, image_geometry, tf2_ros, aiohttp' 2>/dev/null \
+  || die "$venv cannot import rospy/cv2/numpy/shapely/yaml/cv_bridge/image_geometry/tf2_ros/aiohttp; delete .venv and run again"
 
 pip_missing=()
 for spec in "${PIP_PACKAGES[@]}"; do

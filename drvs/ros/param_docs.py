@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from drvs.common.settings import annotation_type
+from drvs.gateway.params import GatewaySettings
 from drvs.robot.params import RobotParams
 from drvs.server.params import ServerSettings
 from drvs.sim.params import RecorderSettings, SimCameraParams, WorldSimSettings
@@ -29,6 +30,7 @@ NODES = {
     'world_sim': WorldSimSettings,
     'sim_camera': SimCameraParams,
     'scenario_recorder': RecorderSettings,
+    'drvs_gateway': GatewaySettings,
 }
 """Node name (its page: docs/nodes/NODE.md, the table between its markers) -> its settings dataclass."""
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import functools
 import json
+import logging
 import math
 import os
 import threading
@@ -27,13 +28,24 @@ from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.msg import NodeCpu, RecorderSample, Registry, RobotStatus, ServerStats, VisionSystemStats
-from drvs.ros.messages import registry_to_dict, robot_status_to_dict, stats_to_dict
+from drvs.msg import (
+    BodyPoses,
+    NodeCpu,
+    RecorderSample,
+    Registry,
+    RobotStatus,
+    ServerStats,
+    TrackedObjects,
+    VisionSystemStats,
+)
+from drvs.ros.messages import body_poses_from_msg, registry_to_dict, robot_status_to_dict, stats_to_dict
 from drvs.ros.node import NodeScaffold
 from drvs.sim.report import CAMERA_FIGURES, ROBOT_FIGURES, SERVER_FIGURES, RunRecord, write_report
+from drvs.sim.tracking import TrackPeriod, TrackPoint, centroid
 from drvs.sim.world import World
 from drvs.sim.world_file import load_world
 
+LOG = logging.getLogger('rosout.' + __name__)
 CLOCK_TICKS = os.sysconf('SC_CLK_TCK')
 TRACE_STEP = 0.01
 """Metres between two recorded trajectory points."""
@@ -43,6 +55,8 @@ DONE = ('arrived', 'failed')
 """Robot states after which its status no longer counts towards its elapsed time."""
 QUEUE = 200
 """Messages of one topic the live recorder may hold while it is busy (world_sim's truth comes every step)."""
+TRUTH_STEP = 0.02
+"""Seconds between two ground-truth poses kept for the tracking metrics (interpolated between)."""
 STATUS_LINE_PERIOD = 0.5
 """Seconds between two updates of ``status.line`` (and, at most, between two CPU samples)."""
 
@@ -92,6 +106,11 @@ class RunRecorder:
         self._counted_status: dict[str, genpy.Time] = {}  # robot -> its newest status up to the end
         self._last_trace: dict[str, tuple[float, float]] = {}
         self._robot_position: dict[str, tuple[float, float]] = {}
+        # The bodies whose ground truth the tracking metrics need over time: robots and humans.
+        self._moving = {r.name for r in world.robots} | {o.name for o in world.objects if o.moving}
+        # Tracking counts from the first sample on: a bag has tracks from before the live recorder
+        # subscribed, and both must measure the same periods.
+        self._sampled = False
 
     @property
     def closed(self) -> bool:
@@ -110,6 +129,8 @@ class RunRecorder:
             '/world_sim/ground_truth': (String, self.on_truth),
             '/drvs/registry': (Registry, self.on_registry),
             '/drvs/stats': (ServerStats, self.on_server_stats),
+            '/world_sim/poses': (BodyPoses, self.on_poses),
+            '/drvs/objects': (TrackedObjects, self.on_objects),
         }
         for robot in self.world.robots:
             for name, message_type, handler in (
@@ -149,6 +170,36 @@ class RunRecorder:
                     trace = self.record.humans.setdefault(obstacle.name, [])
                     if not trace or math.dist(trace[-1], pose[:2]) >= TRACE_STEP:
                         trace.append((pose[0], pose[1]))
+
+    # -- tracking: ground truth and the fused tracks (drvs.sim.tracking) ----------------------------
+    def on_poses(self, msg: BodyPoses) -> None:
+        """The moving bodies' poses, every :data:`TRUTH_STEP`, for the tracking metrics (from the
+        first sample on, as every tracking message)."""
+        stamp, poses = body_poses_from_msg(msg)
+        with self._lock:
+            if self._closed or not self._sampled:
+                return
+            for name in self._moving & poses.keys():
+                samples = self.record.truth.setdefault(name, [])
+                if not samples or stamp - samples[-1][0] >= TRUTH_STEP:
+                    samples.append((stamp, *poses[name][:2]))
+
+    def on_objects(self, msg: TrackedObjects) -> None:
+        """One period of the fusion stage's tracks: each object's algorithm, track id and centroid."""
+        if len(msg.algorithms) != len(msg.objects):
+            LOG.warning(
+                '/drvs/objects: %d algorithm(s) for %d object(s): message left out of the tracking metrics',
+                len(msg.algorithms),
+                len(msg.objects),
+            )
+            return
+        tracks = tuple(
+            TrackPoint(algorithm, int(obj.track_id), *centroid([(p.x, p.y) for p in obj.boundary.points]))
+            for algorithm, obj in zip(msg.algorithms, msg.objects, strict=True)
+        )
+        with self._lock:
+            if self._sampled and not self._closed:
+                self.record.track_periods.append(TrackPeriod(msg.header.stamp.to_sec(), tracks))
 
     def on_status(self, msg: RobotStatus, robot: str) -> bool:
         """One status of ``robot``; True if it counted towards the robot's elapsed time."""
@@ -232,6 +283,7 @@ class RunRecorder:
             self.record.cpu = cpu_summary(msg.cpu)
             self.record.wall_seconds = msg.wall_seconds
             self._closed = msg.final
+            self._sampled = True
 
     def _update_elapsed(self) -> None:
         """Each robot's seconds from the first status to its newest counted one (under the lock)."""

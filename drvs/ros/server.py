@@ -14,6 +14,7 @@ from visualization_msgs.msg import MarkerArray
 
 from drvs.algorithms import AlgorithmSet, default_algorithms
 from drvs.common.health import Health, server_health
+from drvs.common.rate_limit import RateLimiter
 from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, Refusal, name
 from drvs.common.validation import ValidationError, ros_name, watch_terms
 from drvs.msg import Registry as RegistryMsg
@@ -29,7 +30,6 @@ from drvs.server import answers
 from drvs.server.dispatch import Busy, Dispatcher
 from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
-from drvs.server.rate_limit import RateLimiter
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
@@ -67,6 +67,7 @@ STATS_FIELDS = (
     'fused_late',
     'fused_deliveries',
     'fused_failures',
+    'fused_untracked',
     'tracks',
 )
 """The counters of drvs/ServerStats (``watches``: the number standing)."""
@@ -363,6 +364,7 @@ class DrvsServer:
             region_of_interest=request.region_of_interest,
             callback_service=self.fusion.service_name,
             request_id=wire_id,
+            fused=True,  # the vision system calls back even when it finds nothing
         )
 
         def settled(vision_system: str, reply) -> None:

@@ -266,6 +266,7 @@ def one_shot_request(watch: Watch) -> DetectObjectBoundaryRequest:
         region_of_interest=box_to_msg(watch.region),
         callback_service=callback_service,
         request_id=request_id,
+        fused=watch.forward_as is not None,
     )
 
 
@@ -281,4 +282,5 @@ def watch_request(forward: Forward) -> WatchObjectBoundaryRequest:
         period=watch.period,
         duration=forward.duration,
         changes_only=watch.changes_only and watch.forward_as is None,  # fusion wants every frame
+        fused=watch.forward_as is not None,
     )

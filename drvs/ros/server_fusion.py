@@ -69,7 +69,7 @@ class FusionGlue:
     :param submit: queue a :class:`Delivery` for the robot's callback service on the server's
         forwarding workers (raises :class:`~drvs.server.dispatch.Busy` when full).
     :param counters: the server's counters (``fused_callbacks``, ``fused_deliveries``,
-        ``fused_failures``, ``fused_late``).
+        ``fused_failures``, ``fused_late``, ``fused_untracked``).
     :param timeout: limit on one delivery (connect, send, reply), seconds.
     :param objects_period: least time between two ``~objects`` messages, seconds.
     """
@@ -115,11 +115,13 @@ class FusionGlue:
         for a round already answered still feeds the tracks)."""
         found = observations(request.objects)
         with self.lock:
+            untracked = self.stage.untracked
             known = self.stage.callback(
                 request.request_id, request.vision_system, request.stamp.to_sec(), request.algorithm, found
             )
+            untracked = self.stage.untracked - untracked
             self._objects_changed = True
-        self.counters.add(fused_callbacks=1, fused_late=0 if known else 1)
+        self.counters.add(fused_callbacks=1, fused_late=0 if known else 1, fused_untracked=untracked)
         self.wake.set()
         return CallbackCoordinatesResponse()
 

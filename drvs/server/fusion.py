@@ -73,6 +73,7 @@ class _Asked:
     answered: dict[str, float] = field(default_factory=dict)  # vision system -> newest frame stamp
     refused: dict[str, tuple[int, str]] = field(default_factory=dict)  # vision system -> (status, message)
     failed: set[str] = field(default_factory=set)  # forwards that got no answer
+    untracked: int = 0  # outlines left out because the tracker's table was full
 
     def refusal_lines(self) -> tuple[str, ...]:
         return tuple(f'{vs}: {name(status)}: {text}' for vs, (status, text) in sorted(self.refused.items()))
@@ -270,6 +271,8 @@ class FusionStage:
         region = None if owner is None else owner.region
         result = tracker.frame(vision_system, stamp, observations, self._looked_at(vision_system, region))
         self.untracked += result.untracked
+        if owner is not None:
+            owner.heard.untracked += result.untracked
         if owner is None:
             self.late += 1
             return False
@@ -444,6 +447,8 @@ def _outcome(heard: _Asked, missing: tuple[str, ...], asked: int, deadline: floa
         notes.append(f'{len(refusals)} refused: ' + '; '.join(refusals))
     if missing:
         notes.append(f'{len(missing)} did not answer within {deadline:g} s: ' + ', '.join(missing))
+    if heard.untracked:
+        notes.append(f'{heard.untracked} outlines left untracked: the track table is full')
     if heard.answered or asked == 0:
         found = (
             'no vision system covers the region'

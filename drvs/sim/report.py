@@ -22,6 +22,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 from shapely.ops import unary_union
 from shapely.prepared import prep
 
+from drvs.sim.tracking import TrackPeriod, evaluate
 from drvs.sim.world import Body, World
 
 if TYPE_CHECKING:
@@ -92,6 +93,9 @@ class RunRecord:
     server: dict[str, int] = field(default_factory=dict)  # SERVER_FIGURES
     cpu: dict[str, dict] = field(default_factory=dict)  # node -> {'seconds':, 'percent':}
     wall_seconds: float = 0.0  # wall-clock seconds from the run's first status to its last counted one
+    # The tracking metrics' inputs: the moving bodies' ground truth and each /drvs/objects message.
+    truth: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)  # name -> [(t, x, y)]
+    track_periods: list[TrackPeriod] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.robots = {r.name: self.robots.get(r.name) or RobotRecord(r.name) for r in self.world.robots}
@@ -202,10 +206,16 @@ def summary(record: RunRecord, best_length: Mapping[str, float]) -> dict:
         'server': {key: record.server.get(key, 0) for key in SERVER_FIGURES},
         'vision_systems': dict(sorted(record.vision_systems.items())),
         'cpu': dict(sorted(record.cpu.items())),
+        'tracking': tracking(record),
     }
     if len(rows) == 1:
         result |= {key: rows[0][key] for key in SINGLE_ROBOT_KEYS}
     return result
+
+
+def tracking(record: RunRecord) -> dict:
+    """The summary's ``tracking`` block: fused tracks against ground truth (:func:`.tracking.evaluate`)."""
+    return evaluate(record.world, record.truth, record.track_periods)
 
 
 def trace(record: RunRecord) -> dict:
@@ -307,7 +317,54 @@ def figures_table(summary: dict) -> str:
         f'time: {summary["elapsed"]:.1f} s elapsed in ROS time (real-time factor '
         f'{summary["real_time_factor"]}), {summary["wall_seconds"]:.1f} s on the wall clock'
     )
+    if 'tracking' in summary:
+        lines += tracking_lines(summary['tracking'])
     return '\n'.join(lines)
+
+
+TRACKING_COLUMNS = (
+    ('MOTA', 'mota', '.3f'),
+    ('IDF1', 'idf1', '.3f'),
+    ('switches', 'switches', 'd'),
+    ('fragmentations', 'fragmentations', 'd'),
+    ('duplicates', 'duplicates', 'd'),
+    ('switches/100 track-s', 'switches_per_100_track_seconds', '.2f'),
+    ('error mean m', 'position_error_mean', '.3f'),
+    ('p50 m', 'position_error_p50', '.3f'),
+    ('p95 m', 'position_error_p95', '.3f'),
+)
+"""The tracking table of :func:`tracking_lines`: (header, key of a row of the block, format)."""
+
+
+def tracking_lines(block: dict) -> list[str]:
+    """The tracking block as text: a row per algorithm and over all, then the targets.
+
+    >>> tracking_lines({'measured': False, 'reason': 'no /drvs/objects messages', 'gate': 0.5})
+    ['tracking: not measured: no /drvs/objects messages']
+    """
+    if not block.get('measured'):
+        return [f'tracking: not measured: {block["reason"]}']
+
+    def cells(name: str, kind: str, row: dict) -> tuple:
+        values = (
+            format(row[key], spec) if row[key] is not None else None for _, key, spec in TRACKING_COLUMNS
+        )
+        return (name, kind, *values)
+
+    lines = [
+        f'tracking: {block["periods"]} periods of /drvs/objects over {block["span"]:.1f} s, against ground '
+        f'truth within {block["gate"]} m'
+    ]
+    rows = [cells(row['algorithm'], row['kind'], row) for row in block['algorithms']]
+    rows.append(cells('all', '', block['overall']))
+    lines += _table(('algorithm', 'kind', *(header for header, _, _ in TRACKING_COLUMNS)), rows)
+    met = []
+    for name, entry in block['targets'].items():
+        value = '-' if entry['value'] is None else format(entry['value'], '.3g')
+        limit = f'{"≤" if entry["at_most"] else "≥"} {entry["target"]}'
+        met.append(f'{name} {value} ({limit}: {"met" if entry["met"] else "NOT met"})')
+    lines.append('tracking targets: ' + ', '.join(met))
+    return lines
 
 
 # Colours of the picture: each robot's trajectory and station edge in its own colour (the

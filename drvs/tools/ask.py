@@ -153,7 +153,8 @@ def format_callback(request) -> str:
             )
         lines.append(f'      outline {points}')
     if request.fused:
-        lines.insert(1, f'  fused: {status_name(request.status)}: {request.message}')
+        outcome = 'OK' if request.status == request.OK else status_name(request.status)
+        lines.insert(1, f'  fused: {outcome}: {request.message}')
     return '\n'.join(lines)
 
 

@@ -55,6 +55,7 @@ class Terms:
     region: Box
     period: float  # seconds between evaluations (the granted one, once standing)
     changes_only: bool
+    fused: bool = False  # for the server's fusion stage: call back every period, even with nothing found
 
     @property
     def key(self) -> tuple[str, str]:
@@ -88,6 +89,7 @@ def parse_watch(
     duration: float,
     changes_only: bool,
     algorithms: AlgorithmSet | None = None,
+    fused: bool = False,
 ) -> Terms | None:
     """Check a WatchObjectBoundary request; its terms, or None for a cancel (``duration`` 0).
 
@@ -110,7 +112,7 @@ def parse_watch(
     if not watch_terms(request_id, period, duration):
         return None
     parsed, region = request_fields(algorithm, box, callback_service, algorithms)
-    return Terms(callback_service, request_id, parsed, region, float(period), bool(changes_only))
+    return Terms(callback_service, request_id, parsed, region, float(period), bool(changes_only), bool(fused))
 
 
 class WatchRunner:
@@ -199,7 +201,7 @@ class WatchRunner:
             if watch is None or watch.terms is not terms:
                 return None
             if not terms.changes_only:
-                return found or None
+                return found if found or terms.fused else None
             if found:
                 if watch.full_report or not watch.reported or self.changed(watch.reported, found):
                     watch.reported, watch.full_report = found, False

@@ -126,3 +126,35 @@ def test_a_watch_follows_a_moving_object_with_one_id_and_reports_it_gone(ros, gr
     gone = [c['gone'] for c in callbacks(graph, 'walker') if c['gone']]
     assert gone == [[seen[-1]['track_ids'][0]]]
     client.close()
+
+
+def test_a_camera_with_a_wrong_pose_is_left_out_and_named_on_diagnostics(ros, graph):
+    boxes = [BOX, shifted(BOX, -2.0), [[x, y + 2.0] for x, y in BOX]]
+    common = {'answer': True, 'watch': True}
+    graph.camera('good1', square(0, 0, 6, 6), objects=boxes, **common)
+    graph.camera('good2', square(0, 0, 6, 6), objects=[shifted(b, 0.03) for b in boxes], **common)
+    graph.camera('skewed', square(0, 0, 6, 6), objects=[shifted(b, 0.8) for b in boxes], **common)
+    client = ServiceClient('/drvs/watch_object_boundary', WatchObjectBoundary, 10.0)
+    request = WatchObjectBoundary._request_class(
+        algorithm=COLOUR,
+        region_of_interest=BoundingBox(0, 0, 6, 6),
+        callback_service=CALLBACK,
+        request_id='boxes',
+        period=0.2,
+        duration=30.0,
+        fused=True,
+    )
+    assert client.call(request).vision_systems == 3
+    shown = ros.run(
+        "timeout 30 rostopic echo -n 1 --filter \"m.status[0].name == 'drvs: /drvs' and "
+        "'left out of fusion: /skewed' in m.status[0].message\" /diagnostics",
+        timeout=40,
+    )
+    assert shown.returncode == 0, shown.stdout + shown.stderr + ros.describe()
+    assert 'level: 1' in shown.stdout
+    count = len(callbacks(graph, 'boxes'))
+    wait_for(lambda: len(callbacks(graph, 'boxes')) >= count + 3, 10, 'three more periods')
+    latest = callbacks(graph, 'boxes')[-1]
+    assert len(latest['objects']) == 3, 'no ghosts from the skewed camera'
+    assert all('/skewed/detect_object_boundary' not in seen for seen in latest['seen_by'])
+    client.close()

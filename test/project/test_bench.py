@@ -28,6 +28,7 @@ TARGETS = {
     'vision': ['segment_project_800x600_ms'],
     'planner': ['dstar_repair_speedup'],
     'fleet': ['watch_message_ratio'],
+    'tracking': ['tracking_duplicates', 'tracking_idf1', 'tracking_switches_per_100_track_s'],
 }
 
 
@@ -60,7 +61,8 @@ def test_every_section_runs_at_tiny_size_and_reports_its_targets(tiny):
             assert entry['met'] is False and entry.get('note'), name
         else:
             assert entry['met'] == (value <= limit if entry['at_most'] else value >= limit), name
-    assert '[1/8 wire' in output and '[8/8 fleet' in output  # the progress line
+    last, n = bench_run.SECTIONS[-1], len(bench_run.SECTIONS)
+    assert f'[1/{n} wire' in output and f'[{n}/{n} {last}' in output  # the progress line
 
 
 def test_a_section_that_raises_is_reported_and_the_run_fails(monkeypatch, tmp_path):

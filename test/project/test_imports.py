@@ -20,8 +20,16 @@ import pytest
 
 from drvs.testing.harness import REPO
 
-PURE = ('drvs.common', 'drvs.server', 'drvs.vision', 'drvs.robot', 'drvs.sim', 'drvs.algorithms')
-ROLES = ('drvs.server', 'drvs.vision', 'drvs.robot')
+PURE = (
+    'drvs.common',
+    'drvs.server',
+    'drvs.vision',
+    'drvs.robot',
+    'drvs.gateway',
+    'drvs.sim',
+    'drvs.algorithms',
+)
+ROLES = ('drvs.server', 'drvs.vision', 'drvs.robot', 'drvs.gateway')
 COMMON = 'drvs.common'
 COMMON_MAY_IMPORT = ('drvs.common', 'drvs.algorithms')
 # ROS's Python libraries; any top-level package named *_msgs or *_srvs is a message package too.
@@ -57,7 +65,7 @@ PYBULLET_GLUE = (
 )
 
 RULE_ROS = 'pure packages never import ROS, drvs.ros, drvs.msg, drvs.srv or drvs.tools'
-RULE_ROLES = 'drvs.server, drvs.vision and drvs.robot never import one another'
+RULE_ROLES = 'drvs.server, drvs.vision, drvs.robot and drvs.gateway never import one another'
 RULE_COMMON = 'drvs.common imports only drvs.common and drvs.algorithms'
 RULE_PYBULLET = 'nothing but drvs.sim and the simulation glue imports pybullet'
 

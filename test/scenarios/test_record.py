@@ -14,12 +14,21 @@ import sys
 import genpy
 import pytest
 import rosbag
-from geometry_msgs.msg import Point32, Polygon, PoseStamped
+from geometry_msgs.msg import Point32, Polygon, Pose2D, PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.msg import Path as PathMsg
 from std_msgs.msg import Header, String
 
-from drvs.msg import NodeCpu, RecorderSample, Registry, ServerStats, VisionSystemEntry
+from drvs.msg import (
+    BodyPoses,
+    DetectedObject,
+    NodeCpu,
+    RecorderSample,
+    Registry,
+    ServerStats,
+    TrackedObjects,
+    VisionSystemEntry,
+)
 from drvs.robot.robot_status import RobotStatus
 from drvs.ros.messages import robot_status_to_msg, stats_to_msg
 from drvs.ros.recorder import RunRecorder, cpu_summary
@@ -104,6 +113,33 @@ def fleet_truth(t, robots):
     first = dict(next(iter(robots.values())))
     data = {'time': t, 'robot': {'position': first.pop('position')}, **first, 'robots': robots}
     return String(data=json.dumps({**data, 'objects': {}}))
+
+
+def poses(t, bodies):
+    """world_sim's /world_sim/poses: ``bodies`` {name: (x, y)}."""
+    return BodyPoses(
+        header=Header(stamp=genpy.Time.from_sec(t), frame_id='map'),
+        names=list(bodies),
+        poses=[Pose2D(x, y, 0.0) for x, y in bodies.values()],
+    )
+
+
+def tracked(t, tracks):
+    """The fusion stage's /drvs/objects: ``tracks`` [(algorithm, track id, (x, y))], 0.3 m squares."""
+
+    def square(x, y):
+        return Polygon(
+            [
+                Point32(x + dx, y + dy, 0.0)
+                for dx, dy in ((-0.15, -0.15), (0.15, -0.15), (0.15, 0.15), (-0.15, 0.15))
+            ]
+        )
+
+    return TrackedObjects(
+        header=Header(stamp=genpy.Time.from_sec(t), frame_id='map'),
+        algorithms=[algorithm for algorithm, _, _ in tracks],
+        objects=[DetectedObject(boundary=square(*xy), track_id=track_id) for _, track_id, xy in tracks],
+    )
 
 
 def status(t, state, replans=0, reason='', **figures):
@@ -246,16 +282,26 @@ def a_fleet_run(world):
             t, {'robot1': (*one, contacts[0], travelled[0]), 'robot2': (*two, contacts[1], travelled[1])}
         )
 
+    robots = 'colour:0,150,0,255,255,80'  # the world's robot model
     return [
         ('/robot1/status', status(1.0, 'localising'), False),
         ('/drvs/stats', server_stats(2), False),
+        ('/drvs/objects', tracked(0.8, [(robots, 9, (3.0, 3.0))]), False),  # before the first sample
         ('/world_sim/ground_truth', at(0.5, (1.0, 3.0), (1.0, 1.0)), False),
         ('/drvs/registry', registry(), True),
         ('/world_sim/ground_truth', at(1.5, (1.0, 3.0), (1.0, 1.0)), True),
         ('/robot1/status', status(2.0, 'localising'), True),
         ('/robot2/status', status(2.5, 'localising'), True),
         ('/scenario_recorder/samples', sample(2.0, world=world), True),
+        ('/world_sim/poses', poses(1.5, {'robot1': (1.0, 3.0), 'robot2': (1.0, 1.0), 'other': (0, 0)}), True),
+        ('/drvs/objects', tracked(2.0, [(robots, 1, (1.02, 3.0)), (robots, 2, (1.0, 1.0))]), True),
         ('/world_sim/ground_truth', at(3.0, (2.0, 3.0), (1.0, 1.0)), True),
+        ('/world_sim/poses', poses(3.0, {'robot1': (2.0, 3.0), 'robot2': (1.0, 1.0)}), True),
+        (
+            '/drvs/objects',
+            tracked(3.0, [(robots, 1, (2.0, 3.03)), (robots, 2, (1.0, 1.0)), (robots, 3, (1.1, 1.0))]),
+            True,
+        ),
         ('/robot1/path', path(3.0, [(1.0, 3.0), (5.0, 1.0)]), True),
         ('/robot2/path', path(3.0, [(1.0, 1.0), (5.0, 3.0)]), True),
         ('/robot1/map', grid_map(99), True),
@@ -271,6 +317,7 @@ def a_fleet_run(world):
         ('/scenario_recorder/samples', sample(2.0, True, world=world, wall_seconds=11.0), True),
         ('/drvs/stats', server_stats(99), False),
         ('/robot1/status', status(9.0, 'arrived', 1, '', requests=60), False),
+        ('/drvs/objects', tracked(9.0, [(robots, 7, (2.0, 2.0))]), False),
     ]
 
 
@@ -307,6 +354,17 @@ def test_a_bag_of_a_fleet_run_gives_a_row_per_robot_and_the_figures(tmp_path):
     assert (summary['wall_seconds'], summary['real_time_factor']) == (11.0, 1.0)
     assert (live.record.grid == 100).all()  # both robots' maps in one
     assert [len(live.record.robots[name].plans) for name in ('robot1', 'robot2')] == [2, 1]
+    # The fused tracks against ground truth interpolated to their stamps: robot1 at (1.33, 3.0) at 2 s.
+    tracking = summary['tracking']
+    assert (tracking['measured'], tracking['periods'], tracking['span']) == (True, 2, 1.0)
+    (robots,) = tracking['algorithms']
+    assert (robots['bodies'], robots['matches'], robots['duplicates'], robots['switches']) == (
+        ['robot1', 'robot2'],
+        4,
+        1,
+        0,
+    )
+    assert robots['position_error_mean'] == pytest.approx((0.313 + 0.03) / 4, abs=1e-3)
 
 
 def test_the_progress_line_of_a_fleet_counts_the_robots_by_state(tmp_path):

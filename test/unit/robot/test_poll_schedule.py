@@ -8,12 +8,12 @@ from collections import deque
 import pytest
 
 import drvs.robot.poll_schedule
+from drvs.common.rate_limit import RateLimiter
 from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, UNAVAILABLE, UNSUPPORTED
 from drvs.common.status import name as status_name
 from drvs.robot.mission import request_schedule
 from drvs.robot.params import RobotParams
 from drvs.robot.poll_schedule import ACCEPT, GIVE_UP, RETRY, Outcome, Request, RequestSchedule
-from drvs.server.rate_limit import RateLimiter
 from drvs.testing import ManualClock
 
 FLOOR = (0.0, 0.0, 3.0, 3.0)

@@ -158,3 +158,13 @@ def test_one_tracker_per_algorithm_bounded(clock):
     clock.now += 10.0
     stage.due()  # r1 answered at its deadline: the idle tracker makes room
     stage.open_round('/robot', 'r3', 'colour:1,1,1,2,2,2', REGION, '/robot/cb', [CAM1])
+
+
+def test_a_flood_of_outlines_is_bounded_and_said_in_the_answer(clock):
+    stage = FusionStage(clock, FIELDS.get, FusionSettings(tracker=TrackerSettings(max_tracks=5)))
+    wire = stage.open_round('/robot', 'flood', GREEN, REGION, '/robot/cb', [CAM1])
+    flood = [square(0.5 * (i % 10), 0.5 * (i // 10), side=0.2) for i in range(40)]
+    stage.callback(wire, CAM1, 100.0, GREEN, flood)
+    (delivery,) = stage.due()
+    assert delivery.status == OK and len(delivery.objects) == 5
+    assert stage.untracked == 35 and '35 outlines left untracked' in delivery.message

@@ -25,6 +25,7 @@ from drvs.sim.report import (
     summary,
     trace,
 )
+from drvs.sim.tracking import NO_OBJECTS, TrackPeriod, TrackPoint
 from drvs.sim.world import Body, FleetRobot
 from drvs.sim.world_file import load_world
 
@@ -243,6 +244,7 @@ def test_the_figures_table_has_a_row_per_robot_the_server_and_a_row_per_camera(t
         'camera requests watch calls renders callbacks watch evaluations cpu s'.split(),
         'vs1 5 2 9 7 0 3.2'.split(),
         'time: 30.0 s elapsed in ROS time (real-time factor 1.0), 61.0 s on the wall clock'.split(),
+        f'tracking: not measured: {NO_OBJECTS}'.split(),
     ]
     # Columns line up: every row of the robots' table as long as its header.
     assert len({len(line) for line in lines[:3]}) == 1
@@ -337,3 +339,32 @@ def test_the_fleet_picture_draws_each_robot_in_its_own_colour_and_names_it(tmp_p
 
 def test_doctests():
     assert doctest.testmod(drvs.sim.report).failed == 0
+
+
+def test_the_summary_measures_the_fused_tracks_and_the_table_prints_them(tmp_path):
+    walker = {
+        'name': 'walker',
+        'kind': 'human',
+        'position': [2.0, 1.0],
+        'size': [0.3, 0.3, 1.7],
+        'colour': [220, 0, 0],
+        'waypoints': [[2.0, 1.0], [2.0, 3.0]],
+        'speed': 0.5,
+    }
+    record = RunRecord(world=make_world(tmp_path, [walker]))
+    record.truth = {'walker': [(10.0, 2.0, 1.0), (12.0, 2.0, 2.0)]}
+    record.track_periods = [
+        TrackPeriod(t, (TrackPoint(MODELS['human'], 4, 2.05, 1.0 + (t - 10.0) / 2),))
+        for t in (10.0, 11.0, 12.0)
+    ]
+
+    block = summary(record, best_lengths(record.world))['tracking']
+
+    assert block['measured'] and block['periods'] == 3 and block['span'] == 2.0
+    (row,) = block['algorithms']
+    assert (row['kind'], row['bodies'], row['mota'], row['idf1']) == ('people', ['walker'], 1.0, 1.0)
+    assert row['position_error_p50'] == pytest.approx(0.05)
+    lines = figures_table(summary(record, best_lengths(record.world))).splitlines()
+    assert lines[-5].startswith('tracking: 3 periods of /drvs/objects over 2.0 s')
+    assert lines[-3].split()[:4] == [MODELS['human'], 'people', '1.000', '1.000']
+    assert lines[-1].startswith('tracking targets: duplicates 0 (≤ 0: met), idf1 1 (≥ 0.9: met)')

@@ -82,6 +82,15 @@ def test_without_changes_only_it_calls_back_every_period_something_is_found(runn
     assert evaluate_due(runner, 3.0, {'w': []}) == {'w': None}
 
 
+def test_a_fused_watch_calls_back_every_period_even_with_nothing_found(runner):
+    fused = parse_watch(COLOUR, FLOOR, CALLBACK, 'f', 1.0, 30.0, False, fused=True)
+    runner.stand(fused, 60.0, now=0.0)
+    crate = [(square(1, 1), '')]
+    assert evaluate_due(runner, 0.0, {'f': crate}) == {'f': crate}
+    assert evaluate_due(runner, 1.0, {'f': []}) == {'f': []}  # the fusion stage hears "nothing here"
+    assert evaluate_due(runner, 2.0, {'f': []}) == {'f': []}
+
+
 def test_changes_only_calls_back_on_changes_beyond_the_tolerance(runner):
     runner.stand(terms('w', changes_only=True), 60.0, now=0.0)
     crate = [(square(1, 1), '')]

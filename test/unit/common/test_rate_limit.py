@@ -1,8 +1,8 @@
-"""drvs.server.rate_limit: the per-caller token bucket, on a manual clock."""
+"""drvs.common.rate_limit: the per-caller token bucket, on a manual clock."""
 
 import pytest
 
-from drvs.server.rate_limit import RateLimiter
+from drvs.common.rate_limit import RateLimiter
 from drvs.testing import ManualClock
 
 

@@ -1,4 +1,4 @@
-"""Per-caller rate limiting of ROS requests: a token bucket per caller id.
+"""Per-caller rate limiting: a token bucket per key (the server's caller ids, the gateway's tokens).
 
 A request takes a token or is refused with the seconds until one will be there (the
 server's ``retry_after``); idle buckets and those beyond ``max_keys`` are forgotten, so
