@@ -380,11 +380,20 @@ def test_a_frame_older_than_the_reorder_window_joins_without_moving_the_track():
     for t in ticks(3.0):
         tracker.frame('a', t, [seen(1.0, 1.0)])
     before = tracker.tracks(2.9)[0]
-    result = tracker.frame('b', 0.5, [seen(1.3, 1.0)])  # 2.4 s late
+    result = tracker.frame('b', 1.2, [seen(1.3, 1.0)])  # 1.7 s late: past the reorder window
     after = tracker.tracks(2.9)[0]
     assert (result.associated, after.position, after.last_seen) == (1, before.position, 2.9)
-    assert after.seen_by == ('a',)  # since the coast time before 2.9
+    assert tracker.tracks(2.9, since=2.0)[0].seen_by == ('a',)
     assert tracker.tracks(2.9, since=0.0)[0].seen_by == ('a', 'b')
+
+
+def test_a_frame_older_than_the_coast_time_is_stale_and_fuses_nothing():
+    tracker = Tracker()
+    for t in ticks(3.0):
+        tracker.frame('a', t, [seen(1.0, 1.0)])
+    result = tracker.frame('b', 0.5, [seen(3.0, 3.0), seen(1.3, 1.0)])  # 2.4 s late: an old frame
+    assert (result.stale, result.skipped, result.created, len(tracker)) == (True, 2, 0, 1)
+    assert tracker.newest == pytest.approx(2.9)
 
 
 def test_settings_are_checked():
