@@ -9,6 +9,7 @@ written there (that is how docs/gateway-page.png is made).
 
 import json
 import os
+import urllib.error
 import urllib.request
 
 import pytest
@@ -51,19 +52,31 @@ def test_the_floor_plan_shows_cameras_and_a_moving_robot_and_refuses_a_wrong_tok
             return None
 
     token = wait_for(gateway_up, 60, 'the run to start drvs_gateway', interval=0.2, on_timeout=run.logs)
-    request = urllib.request.Request(f'{url}/v1/vision_systems', headers={'Authorization': f'Bearer {token}'})
-    with urllib.request.urlopen(request, timeout=5) as response:
-        registry = {entry['name'] for entry in json.load(response)['vision_systems']}
+
+    def registry_heard():  # 503 until the gateway has heard /drvs/registry
+        request = urllib.request.Request(
+            f'{url}/v1/vision_systems', headers={'Authorization': f'Bearer {token}'}
+        )
+        try:
+            with urllib.request.urlopen(request, timeout=5) as response:
+                return {entry['name'] for entry in json.load(response)['vision_systems']}
+        except urllib.error.HTTPError as error:
+            assert error.code == 503, error
+            return None
+
+    registry = wait_for(registry_heard, 20, 'the registry through the gateway', interval=0.2)
     assert len(registry) == 2, registry
 
-    with headless_chromium(1000, 760) as driver:
+    with headless_chromium(1000, 900) as driver:
         driver.get(url + '/')
         form = wait_for(lambda: driver.find_element(By.ID, 'login').is_displayed(), 15, 'the token form')
         assert form
         driver.find_element(By.ID, 'token').send_keys('drvs.0000.wrong')
         driver.find_element(By.CSS_SELECTOR, '#login button').click()
         error = wait_for(
-            lambda: (box := driver.find_element(By.ID, 'error')).is_displayed() and box.text,
+            lambda: (box := driver.find_element(By.ID, 'error')).is_displayed()
+            and '401' in box.text
+            and box.text,
             15,
             'the error for a wrong token',
         )
@@ -85,6 +98,7 @@ def test_the_floor_plan_shows_cameras_and_a_moving_robot_and_refuses_a_wrong_tok
 
         wait_for(fields_of_view, 20, 'every field of view drawn', interval=0.2, on_timeout=run.logs)
         assert not driver.find_element(By.ID, 'error').is_displayed()
+        assert not driver.find_element(By.ID, 'login').is_displayed()
         labels = driver.execute_script(
             "return [...document.querySelectorAll('#labels .fov-label')].map((e) => e.textContent)"
         )

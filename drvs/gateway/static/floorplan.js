@@ -52,8 +52,9 @@ async function connect() {
     const body = await response.json().catch(() => ({}));
     if (token) sessionStorage.removeItem(TOKEN_KEY);
     const why = body.message ? ': ' + body.message : '';
+    // No token yet: the form alone asks for one; a refused token: say why, clearly.
     askForToken(
-      !token ? (response.status === 401 ? 'This gateway asks for a token.' : '')
+      !token ? ''
         : response.status === 401 ? 'The token was refused (HTTP 401, unknown token' + why + ').'
           : 'This token may not read the floor plan (HTTP 403' + why + ').');
     return;
