@@ -29,6 +29,12 @@ TARGETS = {
     'planner': ['dstar_repair_speedup'],
     'fleet': ['watch_message_ratio'],
     'tracking': ['tracking_duplicates', 'tracking_idf1', 'tracking_switches_per_100_track_s'],
+    'gateway': [
+        'gateway_first_callback_over_ros',
+        'gateway_sse_delivery_p50_ms',
+        'gateway_listener_kib',
+        'gateway_tokens_rate_over_open',
+    ],
 }
 
 
