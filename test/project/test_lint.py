@@ -17,3 +17,13 @@ def test_ruff(args):
     assert (
         result.returncode == 0
     ), f'ruff {" ".join(args)} (fix with `make format`):\n{result.stdout}{result.stderr}'
+
+
+def test_test_modules_have_unique_basenames():
+    """pytest imports test modules by basename (prepend mode): two files of one name in different
+    folders stop the whole collection ("import file mismatch")."""
+    root = Path(__file__).resolve().parents[1]
+    seen: dict[str, list[str]] = {}
+    for path in sorted(root.rglob('test_*.py')):
+        seen.setdefault(path.name, []).append(str(path.relative_to(root)))
+    assert {name: paths for name, paths in seen.items() if len(paths) > 1} == {}
