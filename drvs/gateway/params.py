@@ -87,7 +87,40 @@ class GatewaySettings(Settings):
         check=POSITIVE,
     )
     keep_alive: float = param(15.0, 'a comment on an idle event stream this often', unit='s', check=POSITIVE)
+    rosbridge_bind: str = param(
+        '127.0.0.1:9090',
+        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); empty: none; beyond loopback it needs `~tokens`',
+    )
+    rosbridge_call_timeout: float = param(
+        1.5,
+        "limit on DRVS's call to a service a rosbridge client hosts (below a vision system's "
+        '`~callback_timeout`, 2 s)',
+        unit='s',
+        check=POSITIVE,
+    )
+    rosbridge_queue: int = param(
+        256,
+        'messages waiting for one slow rosbridge client; beyond, the oldest are dropped',
+        check=at_least(1),
+    )
+    rosbridge_heartbeat: float = param(
+        10.0,
+        'a WebSocket ping this often; a client that answers none within half of it is closed',
+        unit='s',
+        check=POSITIVE,
+    )
+    rosbridge_max_frame: int = param(
+        65536,
+        'largest rosbridge frame; beyond, the connection is closed (1009)',
+        unit='bytes',
+        check=at_least(1024),
+    )
+    rosbridge_max_clients: int = param(
+        8, 'rosbridge connections per token (per client address without tokens)', check=at_least(1)
+    )
 
     def __post_init__(self) -> None:
         super().__post_init__()
         split_bind('bind', self.bind)
+        if self.rosbridge_bind:
+            split_bind('rosbridge_bind', self.rosbridge_bind)
