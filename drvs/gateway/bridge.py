@@ -58,7 +58,16 @@ MAX_CALLS = 16
 """Calls to DRVS one connection may have in flight, and calls to its hosted services waiting."""
 MAX_BAD_FRAMES = 1000
 """Refused frames in a row before the connection is closed (policy violation)."""
-COUNTERS = ('connections', 'frames', 'refused', 'calls', 'client_calls', 'client_timeouts', 'dropped')
+COUNTERS = (
+    'connections',
+    'frames',
+    'refused',
+    'calls',
+    'client_calls',
+    'client_timeouts',
+    'dropped',
+    'errors',
+)
 
 
 class ClientRefused(Exception):
@@ -354,6 +363,11 @@ class Session:
             if op.op == 'call_service':
                 self.send(self.call_failed(op, str(error)))
             return
+        except Exception as error:  # a bug: logged with its traceback, the connection goes on
+            self.bridge.counters.add(errors=1)
+            logger.exception('rosbridge op %s failed', op.op)
+            self.send(status('error', f'internal error ({type(error).__name__}); it is logged', op.id))
+            return
         self.bad_frames = 0
 
     def check_rights(self, op: Op) -> None:
@@ -409,8 +423,9 @@ class Session:
                 op.id,
             )
         args = op.fields.get('args') or {}
-        if isinstance(args, dict) and args.get('callback_service') in self.hosted:
-            args = {**args, 'callback_service': self.hosted[args['callback_service']][0]}
+        callback = args.get('callback_service') if isinstance(args, dict) else None
+        if isinstance(callback, str) and callback in self.hosted:
+            args = {**args, 'callback_service': self.hosted[callback][0]}
         timeout = min(
             float(op.fields.get('timeout') or self.bridge.settings.server_timeout),
             self.bridge.settings.server_timeout,
@@ -427,6 +442,11 @@ class Session:
             return
         except NoServer as error:
             self._call_failed(op, f'NO_SERVER: {error}')
+            return
+        except Exception as error:  # a bug: logged with its traceback, the call answered
+            self.bridge.counters.add(errors=1)
+            logger.exception('rosbridge call_service %s failed', op.service)
+            self._call_failed(op, f'INTERNAL: {type(error).__name__}; it is logged')
             return
         finally:
             self.calls_in_flight -= 1
@@ -494,7 +514,7 @@ class Session:
             self.pending.drop(call.id)
 
     async def service_response(self, op: Op) -> None:
-        call = self.pending.answer(op.id, op.service)
+        call = self.pending.answer(op.fields['id'], op.service)  # parse() checked it is there
         if call.waiter.done():
             return
         values = op.fields.get('values')
