@@ -298,9 +298,9 @@ class Session:
         for call in self.pending.clear():
             if not call.waiter.done():
                 call.waiter.set_exception(ClientRefused('the client disconnected'))
-        for _, stop in self.subscriptions.values():
-            stop()
-        self.subscriptions.clear()
+        subscriptions, self.subscriptions = list(self.subscriptions.values()), {}
+        for _, stop in subscriptions:
+            await self.bridge.in_thread(stop)
         hosted, self.hosted = list(self.hosted.values()), {}
         for _, withdraw in hosted:
             try:
@@ -553,7 +553,12 @@ class Session:
             except RuntimeError:  # the loop closed: shutting down
                 pass
 
-        self.subscriptions[topic] = (throttle, self.bridge.backend.subscribe(topic, deliver))
+        self.subscriptions[topic] = (throttle, lambda: None)
+        stop = await self.bridge.in_thread(self.bridge.backend.subscribe, topic, deliver)
+        if self._closed or self.subscriptions.get(topic, (None,))[0] is not throttle:
+            await self.bridge.in_thread(stop)  # closed or unsubscribed meanwhile
+        else:
+            self.subscriptions[topic] = (throttle, stop)
 
     def _publish(self, topic: str, message: dict[str, Any]) -> None:
         subscription = self.subscriptions.get(topic)
@@ -563,7 +568,7 @@ class Session:
     async def unsubscribe(self, op: Op) -> None:
         subscription = self.subscriptions.pop(op.topic, None)
         if subscription is not None:
-            subscription[1]()
+            await self.bridge.in_thread(subscription[1])
 
 
 def _is_name(name: str) -> bool:

@@ -89,7 +89,7 @@ class GatewaySettings(Settings):
     keep_alive: float = param(15.0, 'a comment on an idle event stream this often', unit='s', check=POSITIVE)
     rosbridge_bind: str = param(
         '127.0.0.1:9090',
-        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); empty: none; beyond loopback it needs `~tokens`',
+        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); `off`: none; beyond loopback it needs `~tokens`',
     )
     rosbridge_call_timeout: float = param(
         1.5,
@@ -122,5 +122,10 @@ class GatewaySettings(Settings):
     def __post_init__(self) -> None:
         super().__post_init__()
         split_bind('bind', self.bind)
-        if self.rosbridge_bind:
+        if self.rosbridge_on:
             split_bind('rosbridge_bind', self.rosbridge_bind)
+
+    @property
+    def rosbridge_on(self) -> bool:
+        """Whether the rosbridge endpoint listens (``~rosbridge_bind`` not ``off``)."""
+        return self.rosbridge_bind not in ('', 'off')

@@ -266,7 +266,7 @@ class GatewayNode:
         self.drvs = RosDrvs(settings, f'{rospy.get_name()}/callback_coordinates')
         self.gateway = Gateway(self.drvs, settings, self.tokens)
         self.bridge_sock = (
-            bind_socket(settings, self.tokens, 'rosbridge_bind') if settings.rosbridge_bind else None
+            bind_socket(settings, self.tokens, 'rosbridge_bind') if settings.rosbridge_on else None
         )
         self.bridge_backend = RosBridgeBackend(settings)
         self.bridge = Rosbridge(

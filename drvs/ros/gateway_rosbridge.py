@@ -63,9 +63,10 @@ class RosBridgeBackend:
         }
         self.topics = {topic: message_class._type for topic, message_class in self._topic_classes.items()}
         self._local = threading.local()
-        self._lock = threading.Lock()  # guards _clients and _subscribers
+        self._lock = threading.Lock()  # guards _clients, _subscribers and _newest
         self._clients: list[ServiceClient] = []
         self._subscribers: dict[str, tuple[rospy.Subscriber, set[Callable[[dict[str, Any]], None]]]] = {}
+        self._newest: dict[str, dict[str, Any]] = {}  # each topic's newest message, as JSON
 
     def close(self) -> None:
         with self._lock:
@@ -112,14 +113,34 @@ class RosBridgeBackend:
         return service.shutdown
 
     def subscribe(self, topic: str, deliver: Callable[[dict[str, Any]], None]) -> Callable[[], None]:
+        """A new receiver gets the topic's newest message at once (as a new subscriber of a latched
+        topic would), then every message."""
         with self._lock:
-            if topic not in self._subscribers:
-                receivers: set[Callable[[dict[str, Any]], None]] = set()
-                subscriber = rospy.Subscriber(
-                    topic, self._topic_classes[topic], self._fan_out, callback_args=receivers, queue_size=4
-                )
-                self._subscribers[topic] = (subscriber, receivers)
-            self._subscribers[topic][1].add(deliver)
+            entry = self._subscribers.get(topic)
+            if entry is not None:
+                entry[1].add(deliver)
+            newest = self._newest.get(topic)
+        if newest is not None:
+            deliver(newest)
+        if entry is None:
+            # Outside the lock: rospy hands a latched message to the callback within this call.
+            receivers = {deliver}
+            subscriber = rospy.Subscriber(
+                topic,
+                self._topic_classes[topic],
+                self._fan_out,
+                callback_args=(topic, receivers),
+                queue_size=4,
+            )
+            with self._lock:
+                if topic in self._subscribers:  # another client subscribed meanwhile: one subscriber
+                    self._subscribers[topic][1].add(deliver)
+                    stale = subscriber
+                else:
+                    self._subscribers[topic] = (subscriber, receivers)
+                    stale = None
+            if stale is not None:
+                stale.unregister()
 
         def stop() -> None:
             with self._lock:
@@ -127,16 +148,18 @@ class RosBridgeBackend:
                 if entry is None:
                     return
                 entry[1].discard(deliver)
-                if not entry[1]:
-                    del self._subscribers[topic]
-                    entry[0].unregister()
+                if entry[1]:
+                    return
+                del self._subscribers[topic]
+            entry[0].unregister()
 
         return stop
 
-    def _fan_out(self, message, receivers: set[Callable[[dict[str, Any]], None]]) -> None:
+    def _fan_out(self, message, topic_and_receivers) -> None:
+        topic, receivers = topic_and_receivers
+        data = to_json(message)
         with self._lock:
+            self._newest[topic] = data
             targets = list(receivers)
-        if targets:
-            data = to_json(message)
-            for deliver in targets:
-                deliver(data)
+        for deliver in targets:
+            deliver(data)

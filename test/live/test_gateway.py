@@ -109,6 +109,7 @@ def site(module_ros, tmp_path_factory):
             name='gateway',
             params={
                 'bind': url.removeprefix('http://'),
+                'rosbridge_bind': 'off',  # test_rosbridge.py tests it
                 'tokens': tokens,
                 'max_requests_per_s': 1000,
                 'burst': 1000,
@@ -208,7 +209,12 @@ def test_no_drvs_server_is_503_within_the_deadline(site):
     lonely = ros.start_node(
         'nodes/drvs_gateway',
         name='lonely',
-        params={'bind': url.removeprefix('http://'), 'server': '/nowhere', 'server_timeout': 1.0},
+        params={
+            'bind': url.removeprefix('http://'),
+            'rosbridge_bind': 'off',
+            'server': '/nowhere',
+            'server_timeout': 1.0,
+        },
     )
     client = Client(url)
     wait_for(lambda: _answers(client), 30, 'the second gateway', on_timeout=lonely.describe)
@@ -229,7 +235,7 @@ def _answers(client):
 
 def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
     node = site['ros'].start_node(
-        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}'}
+        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}', 'rosbridge_bind': 'off'}
     )
     wait_for(lambda: not node.running(), 30, 'the gateway to refuse', on_timeout=node.describe)
     assert node.process.returncode == 2
@@ -239,7 +245,7 @@ def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
 def test_the_docs_examples_run_as_written(site, tmp_path):
     """docs/gateway.md's Python client and its first two curl commands, against this gateway."""
     page = (REPO / 'docs' / 'gateway.md').read_text()
-    (python,) = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)
+    python = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)[0]  # the first; the next: roslibpy
     env = {**os.environ, 'DRVS_GATEWAY': site['url'], 'DRVS_TOKEN': site['full'], 'TOKEN': site['full']}
     script = tmp_path / 'client.py'
     script.write_text(python)

@@ -17,6 +17,7 @@ from drvs.gateway.bridge import Rosbridge
 from drvs.gateway.params import GatewaySettings
 from drvs.gateway.rosjson import FieldError
 from drvs.gateway.tokens import Tokens, make_entry
+from drvs.testing.hostile_frames import random_frame
 
 DETECT = '/drvs/detect_object_boundary'
 COLOUR = 'colour:0,0,150,80,80,255'
@@ -421,54 +422,6 @@ def test_connections_per_token_and_foreign_web_pages_are_limited():
             pass
 
     serve(test, rosbridge_max_clients=2)
-
-
-def random_frame(rng):
-    """A hostile frame: a valid op with fields mutated, dropped or retyped, or plain garbage."""
-    valid = [
-        ADVERTISE,
-        ask(),
-        {'op': 'subscribe', 'topic': '/drvs/registry'},
-        {'op': 'set_level', 'level': 'info'},
-        {
-            'op': 'service_response',
-            'id': 'drvs:/robot/callback:1',
-            'service': '/robot/callback',
-            'values': {},
-        },
-        {'op': 'unadvertise_service', 'service': '/robot/callback'},
-        {'op': 'auth', 'mac': 'x'},
-    ]
-    strange = [
-        None,
-        True,
-        -1,
-        2**70,
-        1e308,
-        '',
-        'x' * 300,
-        [],
-        {},
-        [[[]]],
-        {'a': {'b': {}}},
-        '\u0000',
-        '/drvs',
-    ]
-    choice = rng.random()
-    if choice < 0.15:
-        return bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64))).decode('latin-1')
-    frame = json.loads(json.dumps(rng.choice(valid)))
-    for _ in range(rng.randrange(1, 4)):
-        target = frame['args'] if isinstance(frame.get('args'), dict) and rng.random() < 0.5 else frame
-        key = rng.choice([*target, 'op', 'id', 'zzz'])
-        if rng.random() < 0.2:
-            target.pop(key, None)
-        else:
-            target[key] = json.loads(json.dumps(rng.choice(strange)))
-    text = json.dumps(frame)
-    if choice > 0.9:
-        text = text[: rng.randrange(len(text))]
-    return text
 
 
 def test_thousands_of_random_frames_leave_the_endpoint_serving():
