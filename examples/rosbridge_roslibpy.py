@@ -16,7 +16,7 @@ called_back = threading.Event()
 
 def on_callback(request, response):
     for found in request['objects']:
-        points = [[p['x'], p['y']] for p in found['boundary']['points']]
+        points = [[round(p['x'], 3), round(p['y'], 3)] for p in found['boundary']['points']]
         print(request['vision_system'], 'sees', found['label'] or 'an object', 'at', points)
     called_back.set()
     return True

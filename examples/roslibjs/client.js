@@ -11,7 +11,7 @@ const giveUp = setTimeout(() => { console.error('no callback within 15 s'); proc
 const callback = new ROSLIB.Service({ros, name: '/my_robot/drvs_callback', serviceType: 'drvs/CallbackCoordinates'});
 callback.advertise((request, response) => {
   for (const found of request.objects) {
-    const points = found.boundary.points.map((p) => [p.x, p.y]);
+    const points = found.boundary.points.map((p) => [+p.x.toFixed(3), +p.y.toFixed(3)]);
     console.log(request.vision_system, 'sees', found.label || 'an object', 'at', JSON.stringify(points));
   }
   clearTimeout(giveUp);

@@ -26,7 +26,7 @@ BOX = [[1.0, 1.0], [1.4, 1.0], [1.4, 1.4], [1.0, 1.4]]
 FOV = [[0, 0], [4, 0], [4, 4], [0, 4]]
 COLOUR = 'colour:0,0,150,80,80,255'
 EXAMPLES = REPO / 'examples'
-SEES = '/cam1/detect_object_boundary sees an object at [[1.0, 1.0], [1.4, 1.0], [1.4, 1.4], [1.0, 1.4]]'
+SEES = '/cam1/detect_object_boundary sees an object at '
 
 
 @pytest.fixture(scope='module')
@@ -133,7 +133,13 @@ def run_example(command, site, cwd=REPO):
 def test_the_roslibpy_example_asks_hosts_its_callback_and_gets_the_outlines(site):
     pytest.importorskip('roslibpy', reason='roslibpy is installed by make setup')
     lines = run_example([sys.executable, str(EXAMPLES / 'rosbridge_roslibpy.py')], site)
-    assert lines == ['status 0 vision systems 1', SEES]
+    assert_outlines(lines)
+
+
+def assert_outlines(lines):
+    """The examples' output: DRVS's answer, then the outline the camera saw."""
+    assert lines[0] == 'status 0 vision systems 1' and lines[1].startswith(SEES), lines
+    assert json.loads(lines[1].removeprefix(SEES)) == BOX and len(lines) == 2
 
 
 def test_the_roslibjs_example_does_the_same_in_node(site):
@@ -143,7 +149,7 @@ def test_the_roslibjs_example_does_the_same_in_node(site):
     if not (folder / 'node_modules' / 'roslib').is_dir():
         subprocess.run(['npm', 'ci', '--no-audit', '--no-fund'], cwd=folder, check=True, timeout=300)
     lines = run_example(['node', 'client.js'], site, cwd=folder)
-    assert lines == ['status 0 vision systems 1', SEES.replace(', ', ',').replace('at [[', 'at [[')]
+    assert_outlines(lines)
 
 
 def test_a_client_that_never_answers_delays_nobody_and_garbage_is_refused(site):
@@ -186,7 +192,9 @@ def test_a_client_that_never_answers_delays_nobody_and_garbage_is_refused(site):
                         }
                     )
             assert time.monotonic() - started < 1.5  # before the mute one's call could time out
-            assert [[p['x'], p['y']] for p in outlines[0]['boundary']['points']] == pytest.approx(BOX)
+            assert [v for p in outlines[0]['boundary']['points'] for v in (p['x'], p['y'])] == pytest.approx(
+                sum(BOX, [])
+            )
             # The mute client is asked too; its silence ends that one call within ~rosbridge_call_timeout.
             messages = [await receive(mute), await receive(mute)]
             assert {m['op'] for m in messages} == {'service_response', 'call_service'}
