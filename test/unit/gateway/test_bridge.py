@@ -453,3 +453,12 @@ def test_thousands_of_random_frames_leave_the_endpoint_serving():
 async def _drain(socket):
     async for _ in socket:
         pass
+
+
+def test_the_docs_quote_the_examples_the_live_test_runs():
+    from drvs.testing.harness import REPO
+
+    page = (REPO / 'docs' / 'gateway.md').read_text()
+    for example, fence in (('rosbridge_roslibpy.py', 'python'), ('roslibjs/client.js', 'js')):
+        text = (REPO / 'examples' / example).read_text()
+        assert f'```{fence}\n{text}```' in page, f'docs/gateway.md does not quote examples/{example} as it is'
