@@ -191,8 +191,10 @@ class Rosbridge:
         try:
             await session.run()
         finally:
-            self.sessions.discard(session)
-            await session.close()
+            try:
+                await session.close()
+            finally:
+                self.sessions.discard(session)
         return socket
 
     def _too_many(self, owner: str) -> web.Response:
@@ -300,12 +302,15 @@ class Session:
                 call.waiter.set_exception(ClientRefused('the client disconnected'))
         subscriptions, self.subscriptions = list(self.subscriptions.values()), {}
         for _, stop in subscriptions:
-            await self.bridge.in_thread(stop)
+            try:
+                await self.bridge.in_thread(stop)
+            except RuntimeError:  # the executor is gone: shutting down, ROS goes with the node
+                pass
         hosted, self.hosted = list(self.hosted.values()), {}
         for _, withdraw in hosted:
             try:
                 await self.bridge.in_thread(withdraw)
-            except Exception:  # the master gone: the service goes with the node
+            except Exception:  # the master or the executor gone: the service goes with the node
                 logger.exception('withdrawing a hosted service')
         if not self.socket.closed:
             await self.socket.close(message=reason.encode()[:120])

@@ -89,7 +89,7 @@ class GatewaySettings(Settings):
     keep_alive: float = param(15.0, 'a comment on an idle event stream this often', unit='s', check=POSITIVE)
     rosbridge_bind: str = param(
         '127.0.0.1:9090',
-        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); `off`: none; beyond loopback it needs `~tokens`',
+        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); `none`: none; beyond loopback it needs `~tokens`',
     )
     rosbridge_call_timeout: float = param(
         1.5,
@@ -127,5 +127,5 @@ class GatewaySettings(Settings):
 
     @property
     def rosbridge_on(self) -> bool:
-        """Whether the rosbridge endpoint listens (``~rosbridge_bind`` not ``off``)."""
-        return self.rosbridge_bind not in ('', 'off')
+        """Whether the rosbridge endpoint listens (``~rosbridge_bind`` not ``none``)."""
+        return self.rosbridge_bind not in ('', 'none')

@@ -109,7 +109,7 @@ def site(module_ros, tmp_path_factory):
             name='gateway',
             params={
                 'bind': url.removeprefix('http://'),
-                'rosbridge_bind': 'off',  # test_rosbridge.py tests it
+                'rosbridge_bind': 'none',  # test_rosbridge.py tests it
                 'tokens': tokens,
                 'max_requests_per_s': 1000,
                 'burst': 1000,
@@ -211,7 +211,7 @@ def test_no_drvs_server_is_503_within_the_deadline(site):
         name='lonely',
         params={
             'bind': url.removeprefix('http://'),
-            'rosbridge_bind': 'off',
+            'rosbridge_bind': 'none',
             'server': '/nowhere',
             'server_timeout': 1.0,
         },
@@ -235,7 +235,7 @@ def _answers(client):
 
 def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
     node = site['ros'].start_node(
-        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}', 'rosbridge_bind': 'off'}
+        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}', 'rosbridge_bind': 'none'}
     )
     wait_for(lambda: not node.running(), 30, 'the gateway to refuse', on_timeout=node.describe)
     assert node.process.returncode == 2
