@@ -4,8 +4,9 @@ thread and event loop, beside rospy, as a ROS client of DRVS like any robot.
 It hosts a CallbackCoordinates service for every request and watch it sends, calls the server's
 DetectObjectBoundary and WatchObjectBoundary with a deadline each
 (:class:`drvs.ros.service_client.ServiceClient`), and keeps the newest ``/drvs/registry``,
-``/drvs/objects`` and ``/diagnostics`` for the read routes. The contract: docs/gateway.md; the
-parameters: docs/nodes/drvs_gateway.md.
+``/drvs/objects`` and ``/diagnostics`` for the read routes. Beside it, on ``~rosbridge_bind``, the
+rosbridge endpoint (:mod:`drvs.gateway.bridge` with :mod:`drvs.ros.gateway_rosbridge`). The
+contract: docs/gateway.md; the parameters: docs/nodes/drvs_gateway.md.
 """
 
 from __future__ import annotations
