@@ -75,6 +75,7 @@ setup(
     version='0.1.0',
     description='Distributed Robotic Vision Service (ROS 1)',
     packages=find_packages(include=['drvs', 'drvs.*']),
+    package_data={'drvs.gateway': ['static/*']},  # the floor-plan page of drvs_gateway
     scripts=node_scripts(),
     python_requires='>=3.11',
 )

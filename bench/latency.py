@@ -27,13 +27,24 @@ process's user + system time (``/proc``) over the measured rounds, divided by
 the forwards it made then (each accepted request went to ``vision_systems``
 vision systems, all of which called back).
 
+Fused requests (docs/interface.md, "Fused mode"): at each size the same client asks again
+with ``fused`` true, as many rounds, against the same server and vision systems; the vision
+systems call the server back (``/drvs/fusion_callback``) and the server calls the robot
+back once, when all have answered. Request → fused callback is compared with the
+per-camera run's request → last callback (what a per-camera robot waits for to have every
+camera's answer), and the server's CPU per fused round (its process CPU over the fused
+rounds, divided by them) with its CPU per per-camera round.
+
 Then a server, a vision system and an echo service of their own run with
 chosen steps — rospy's and DRVS's — timed in thread CPU time
 (``bench/nodes/profiled.py``), which shows where a request's time goes without
 counting waits for a loaded machine's CPU.
 
 The server runs with its rate limit raised (``~max_requests_per_s``, ``~burst``):
-one robot asking back to back would otherwise be refused after its burst of 100.
+one robot asking back to back would otherwise be refused after its burst of 100. And with
+``~track_coast`` raised: every frame is the first one, its stamp ages through the run, and a
+track last seen longer than ``~track_coast`` ago ends, so the fused callbacks would carry no
+object after the first 2 s.
 """
 
 from __future__ import annotations
@@ -57,7 +68,7 @@ PROFILED = NODES / 'profiled.py'
 PLAIN = '/echo/detect_object_boundary'
 REGION = (1.7, 1.3, 2.3, 1.7)  # around the box every camera sees
 ALGORITHM = 'colour:0,0,150,80,80,255'  # the box's blue
-SERVER_PARAMS = {'max_requests_per_s': 1e6, 'burst': 1_000_000}
+SERVER_PARAMS = {'max_requests_per_s': 1e6, 'burst': 1_000_000, 'track_coast': 1e9}
 FRAME_AGE = 1e9  # seconds: the first frame is reused for every request
 GAP = 0.002  # seconds between a call's end and the next call (the client's ~gap)
 RESOLUTION = (80, 60)
@@ -187,6 +198,18 @@ def run(ctx: Context) -> Section:
                 ros, ctx, str(count), rounds, watched + visions, expect=count, cpu_pid=server.pid
             )
             sizes[count] = describe(measured, started=count - started, startup_s=measured['ready'] - began)
+            ctx.progress(f'latency: {count} vision system(s), {rounds} fused rounds')
+            fused = run_client(
+                ros,
+                ctx,
+                f'{count}_fused',
+                rounds,
+                watched + visions,
+                expect=count,
+                cpu_pid=server.pid,
+                fused=True,
+            )
+            sizes[count]['fused'] = describe_fused(fused)
         ctx.progress('latency: steps timed in CPU time, one vision system')
         profile = profile_run(ros, ctx, timed, ctx.pick(20, 150, 1000), watched + visions)
     return summarize(ctx, sizes, counts, profile)
@@ -207,7 +230,27 @@ def describe(measured: dict, **extra) -> dict:
         'window_s': measured['done']['window'],
         'server_cpu_s': cpu,
         'server_cpu_per_forward_s': cpu / forwards if forwards and cpu is not None else None,
+        'server_cpu_per_round_s': cpu / len(rows) if rows and cpu is not None else None,
         **extra,
+    }
+
+
+def describe_fused(measured: dict) -> dict:
+    """p50 / p99 of a fused client run's times (its one callback: ``callback``), and the server's CPU
+    per fused round."""
+    rows = measured['rounds']
+    cpu = measured['done']['cpu']
+    return {
+        'plain': spread([row['plain'] for row in rows]),
+        'ack': spread([row['ack'] for row in rows]),
+        'callback': spread([row['first'] for row in rows if row['first'] is not None]),
+        'missing_callbacks': sum(row['callbacks'] == 0 for row in rows),
+        'missing_answers': sum(row['vision_systems'] - row['answered'] for row in rows),
+        'objects': sorted({row['objects'] for row in rows}),
+        'rounds': len(rows),
+        'window_s': measured['done']['window'],
+        'server_cpu_s': cpu,
+        'server_cpu_per_round_s': cpu / len(rows) if rows and cpu is not None else None,
     }
 
 
@@ -263,6 +306,47 @@ STEPS = {  # process -> (what, whose, steps timed, steps subtracted); "…": a p
 }
 
 
+FUSION_CALLBACK = 'drvs.ros.server_fusion:FusionGlue.handle_callback'
+FUSED_STEPS = (  # the timed server's steps in a fused round (what, whose, timed, subtracted); per round
+    ('read the request and the callback from their sockets, deserialise them', 'rospy', [RECEIVE], []),
+    ('the request: handle it, write the acknowledgement', 'rospy + DRVS', [REPLY_FIRST], [RELEASE]),
+    ('… handle_detect: checks, match, open the round, queue', 'DRVS', [DETECT], []),
+    ('send the forward, after the acknowledgement', 'DRVS', [RELEASE], []),
+    ("settle the vision system's reply", 'DRVS', ['drvs.ros.service_client:ReplyLoop._end'], []),
+    # rospy's _handle_request runs for the request too, inside ReplyFirstService's (with RELEASE after it):
+    # left out so; the calls are handle_callback's (added and taken away again)
+    (
+        "the vision system's callback: handle it, write the reply",
+        'rospy + DRVS',
+        [FUSION_CALLBACK, HANDLE, RELEASE],
+        [FUSION_CALLBACK, REPLY_FIRST],
+    ),
+    ('… handle_callback: to observations, fuse (under the lock)', 'DRVS', [FUSION_CALLBACK], []),
+    ('… … outlines to observations', 'DRVS', ['drvs.ros.server_fusion:observations'], []),
+    ('… … the tracker: FusionStage.callback', 'DRVS', ['drvs.server.fusion:FusionStage.callback'], []),
+    ('… … … Tracker.frame', 'DRVS', ['drvs.server.tracker:Tracker.frame'], []),
+    (
+        "the delivery loop: what is due (the round's answer)",
+        'DRVS',
+        ['drvs.server.fusion:FusionStage.due'],
+        [],
+    ),
+    (
+        'the fused callback: build, send, read the reply',
+        'DRVS + rospy',
+        ['drvs.ros.server_fusion:FusionGlue.deliver'],
+        [],
+    ),
+    ('… each track as a drvs/DetectedObject', 'DRVS', ['drvs.ros.server_fusion:detected_object'], []),
+    (
+        '`~objects` and its markers',
+        'DRVS + rospy',
+        ['drvs.ros.server_fusion:FusionGlue._publish_objects'],
+        [],
+    ),
+)
+
+
 def steps_file(ctx: Context, process: str) -> Path:
     return ctx.work_dir / f'latency-steps-{process}.json'
 
@@ -272,7 +356,8 @@ def start_timed(ros: RosHarness, ctx: Context, world: Path) -> dict:
     the same master, with their steps timed in CPU time (``bench/nodes/profiled.py``)."""
 
     def timed(process: str, name: str, node: str, **params):
-        steps = ','.join(sorted({step for _, _, timed, _ in STEPS[process] for step in timed}))
+        rows = STEPS[process] + (FUSED_STEPS if process == 'server' else ())
+        steps = ','.join(sorted({step for _, _, timed, _ in rows for step in timed}))
         args = [str(steps_file(ctx, process)), steps, str(REPO / node)]
         return pin(ros.start_node(PROFILED, name=name, args=args, params=params), OTHER_CPUS)
 
@@ -293,18 +378,22 @@ def start_timed(ros: RosHarness, ctx: Context, world: Path) -> dict:
 
 
 def profile_run(ros: RosHarness, ctx: Context, timed: dict, rounds: int, watched) -> dict:
-    """Requests to the timed server (:func:`start_timed`): CPU µs per call of each step."""
+    """Requests to the timed server (:func:`start_timed`), per camera then fused: CPU µs per call of
+    each step (per camera), and per round of each step of a fused round."""
     server = timed['server']
-    measured = run_client(
-        ros,
-        ctx,
-        'timed',
-        rounds,
-        watched,
-        server='/drvs_timed/detect_object_boundary',
-        plain='/echo_timed/detect_object_boundary',
-        cpu_pid=server.pid,
+    params = {
+        'server': '/drvs_timed/detect_object_boundary',
+        'plain': '/echo_timed/detect_object_boundary',
+        'cpu_pid': server.pid,
+    }
+    measured = run_client(ros, ctx, 'timed', rounds, watched, **params)
+    for node in timed.values():  # the tallies of the per-camera rounds: <steps file>.mark
+        os.kill(node.pid, signal.SIGUSR1)
+    marks = {process: Path(f'{steps_file(ctx, process)}.mark') for process in timed}
+    wait_for(
+        lambda: all(mark.exists() for mark in marks.values()), 30, 'the timed nodes to mark their tallies'
     )
+    fused = run_client(ros, ctx, 'timed_fused', rounds, watched, fused=True, **params)
     for node in timed.values():  # Ctrl-C to all three at once: each writes its tallies as it exits
         os.killpg(node.pid, signal.SIGINT)
     for node in timed.values():
@@ -313,12 +402,9 @@ def profile_run(ros: RosHarness, ctx: Context, timed: dict, rounds: int, watched
             raise RuntimeError(f'{node.name} did not exit cleanly\n{node.describe()}')
     rows = []
     for process, steps in STEPS.items():
-        tallies = json.loads(steps_file(ctx, process).read_text())
+        tallies = read_tallies(marks[process])
         for what, whose, timed_steps, subtracted in steps:
-            calls = tallies.get(timed_steps[0], {}).get('calls', 0)
-            seconds = sum(tallies.get(step, {}).get('cpu_s', 0.0) for step in timed_steps) - sum(
-                tallies.get(step, {}).get('cpu_s', 0.0) for step in subtracted
-            )
+            calls, seconds = step_cpu(tallies, timed_steps, subtracted)
             rows.append(
                 {
                     'process': process,
@@ -328,13 +414,51 @@ def profile_run(ros: RosHarness, ctx: Context, timed: dict, rounds: int, watched
                     'cpu_us': seconds / calls * 1e6 if calls else None,
                 }
             )
+    before, after = read_tallies(marks['server']), read_tallies(steps_file(ctx, 'server'))
+    tallies = {
+        step: {key: value - before.get(step, {}).get(key, 0) for key, value in tally.items()}
+        for step, tally in after.items()
+    }
+    fused_rounds = len(fused['rounds'])
+    requests = tallies.get(DETECT, {}).get('calls', 0)  # the warm-up's too: every fused request
+    fused_rows = []
+    for what, whose, timed_steps, subtracted in FUSED_STEPS:
+        calls, seconds = step_cpu(tallies, timed_steps, subtracted)
+        fused_rows.append(
+            {
+                'step': what,
+                'whose': whose,
+                'calls_per_round': calls / requests if requests else None,
+                'cpu_us_per_round': seconds / requests * 1e6 if requests else None,
+            }
+        )
     done, forwards = measured['done'], len(measured['rounds'])
+    fused_cpu = fused['done']['cpu']
     return {
         'rounds': rounds,
         'plain_p50_s': spread([row['plain'] for row in measured['rounds']])['p50'],
         'server_cpu_us_per_request': done['cpu'] / forwards * 1e6 if done['cpu'] is not None else None,
         'rows': rows,
+        'fused_rounds': fused_rounds,
+        'fused_server_cpu_us_per_round': fused_cpu / fused_rounds * 1e6 if fused_cpu is not None else None,
+        'fused_callback_p50_s': spread([row['first'] for row in fused['rounds'] if row['first'] is not None])[
+            'p50'
+        ],
+        'fused_rows': fused_rows,
     }
+
+
+def read_tallies(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def step_cpu(tallies: dict, timed_steps: list[str], subtracted: list[str]) -> tuple[int, float]:
+    """(calls of the first of ``timed_steps``, their CPU seconds less those of ``subtracted``)."""
+    calls = tallies.get(timed_steps[0], {}).get('calls', 0)
+    seconds = sum(tallies.get(step, {}).get('cpu_s', 0.0) for step in timed_steps) - sum(
+        tallies.get(step, {}).get('cpu_s', 0.0) for step in subtracted
+    )
+    return calls, seconds
 
 
 def summarize(ctx: Context, sizes: dict, counts, profile: dict) -> Section:
@@ -378,8 +502,11 @@ def summarize(ctx: Context, sizes: dict, counts, profile: dict) -> Section:
         f'\nTargets (1 vision system): acknowledgement {one["ack"]["p50"] * ms:.3g} ms | plain call '
         f'{plain * ms:.3g} ms | ratio {ack_ratio:.2f} (at most 2); first callback '
         f'{one["first"]["p50"] * ms:.3g} ms | three plain calls {3 * plain * ms:.3g} ms | ratio '
-        f'{first_ratio:.2f} (at most 1.5).\n\n'
-        f'Where the CPU goes, per call of each step ({profile["rounds"]} requests to a server, one vision '
+        f'{first_ratio:.2f} (at most 1.5).\n'
+    )
+    markdown += fused_table(sizes, counts)
+    markdown += (
+        f'\nWhere the CPU goes, per call of each step ({profile["rounds"]} requests to a server, one vision '
         'system and an echo service of their own, chosen functions timed in thread CPU time by '
         '`bench/nodes/profiled.py`; the server process used '
         f'{profile["server_cpu_us_per_request"]:.0f} µs of CPU per request in all):\n\n'
@@ -391,6 +518,7 @@ def summarize(ctx: Context, sizes: dict, counts, profile: dict) -> Section:
             for row in profile['rows']
         ],
     )
+    markdown += fused_steps(profile)
     markdown += explanation(profile)
     plot = plot_latency(ctx, sizes, counts)
     return Section(
@@ -409,6 +537,82 @@ def summarize(ctx: Context, sizes: dict, counts, profile: dict) -> Section:
         },
         markdown=markdown,
         plots=[plot],
+    )
+
+
+def fused_table(sizes: dict, counts) -> str:
+    """Markdown: request → fused callback against request → last per-camera callback, and the server's
+    CPU per round both ways, at each size (same run)."""
+    ms, us = 1000.0, 1e6
+    rows = []
+    for count in counts:
+        size, fused = sizes[count], sizes[count]['fused']
+        last, callback = size['last'], fused['callback']
+        per_camera, per_fused = size['server_cpu_per_round_s'], fused['server_cpu_per_round_s']
+        cpu = (
+            [per_camera * us, per_fused * us, per_fused / per_camera]
+            if per_camera and per_fused
+            else ['-'] * 3
+        )
+        rows.append(
+            [
+                count,
+                f'{last["p50"] * ms:.3g} / {last["p99"] * ms:.3g}',
+                f'{callback["p50"] * ms:.3g} / {callback["p99"] * ms:.3g}',
+                callback['p50'] / last['p50'],
+                callback['p99'] / last['p99'],
+                ', '.join(map(str, fused['objects'])),
+                *cpu,
+            ]
+        )
+    duplicates = [count for count in counts if sizes[count]['fused']['objects'] != [1]]
+    note = (
+        '\nThe box is one object: more in a fused callback are duplicate tracks of it '
+        f'(at {", ".join(map(str, duplicates))} vision systems). Each vision system answers from its first '
+        'frame, taken when it was started for its size, so the frames fused in one round carry stamps up to '
+        'minutes apart, and the tracker starts new tracks for frames that far behind its tracks (vision '
+        'systems started together, their frames seconds apart, give one track); the duplicates add to the '
+        "server's work per frame.\n"
+        if duplicates
+        else ''
+    )
+    return (
+        '\nFused requests, same run, same server and vision systems, as many rounds: the robot gets one '
+        'callback from the server once every vision system has called the server back. Request → fused '
+        "callback against request → last per-camera callback (when a per-camera robot has every camera's "
+        "answer), and the server's process CPU per round (over the measured rounds):\n\n"
+        + table(
+            [
+                'vision systems',
+                'per camera: last callback p50 / p99 ms',
+                'fused callback p50 / p99 ms',
+                'fused / last p50',
+                'fused / last p99',
+                'objects in a fused callback',
+                'server CPU µs per per-camera round',
+                'server CPU µs per fused round',
+                'fused / per camera',
+            ],
+            rows,
+        )
+        + note
+    )
+
+
+def fused_steps(profile: dict) -> str:
+    """Markdown: where the timed server's CPU goes in a fused round (one vision system)."""
+    rows = [
+        [row['step'], row['whose'], row['calls_per_round'], row['cpu_us_per_round']]
+        for row in profile['fused_rows']
+        if row['calls_per_round'] is not None
+    ]
+    per_round = profile['fused_server_cpu_us_per_round']
+    in_all = f'; the process used {per_round:.0f} µs per fused round in all' if per_round is not None else ''
+    return (
+        f"\nWhere the server's CPU goes in a fused round ({profile['fused_rounds']} fused requests to the "
+        'same timed server, one vision system, after its per-camera requests; per fused request, its '
+        f'warm-up included{in_all}):\n\n'
+        + table(['step', 'whose', 'calls per round', 'CPU µs per round'], rows)
     )
 
 
@@ -470,6 +674,9 @@ def plot_latency(ctx: Context, sizes: dict, counts) -> str:
         axes.plot(
             counts, [sizes[c][key]['p99'] * ms for c in counts], 'o--', color=colour, label=f'{label} p99'
         )
+    fused = [sizes[c]['fused']['callback'] for c in counts]
+    axes.plot(counts, [f['p50'] * ms for f in fused], 'D-', color='tab:purple', label='fused callback p50')
+    axes.plot(counts, [f['p99'] * ms for f in fused], 'D--', color='tab:purple', label='fused callback p99')
     plain = sizes[counts[0]]['plain']['p50'] * ms
     axes.axhline(plain, color='grey', label='plain persistent rospy call p50')
     axes.axhline(3 * plain, color='grey', linestyle=':', label='three plain calls')

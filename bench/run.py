@@ -32,8 +32,20 @@ from bench.common import SIZES, Context, Section
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / 'bench' / 'results'
 # In the order of the items: Table 1, the constrained link, latency, throughput,
-# the registry, vision, the planner, the fleet; then the fused tracks against ground truth.
-SECTIONS = ('wire', 'link', 'latency', 'throughput', 'registry', 'vision', 'planner', 'fleet', 'tracking')
+# the registry, vision, the planner, the fleet; then the fused tracks against ground truth, and the
+# HTTP gateway against ROS.
+SECTIONS = (
+    'wire',
+    'link',
+    'latency',
+    'throughput',
+    'registry',
+    'vision',
+    'planner',
+    'fleet',
+    'tracking',
+    'gateway',
+)
 PAGE = REPO / 'docs' / 'performance.md'
 README = REPO / 'README.md'
 PAGE_MARKERS = ('<!-- performance:begin -->', '<!-- performance:end -->')

@@ -15,7 +15,12 @@ world (flat orange squares on a white floor, cameras straight down), and R bench
 (bench/nodes/drvs_robot.py). One-shot round: each robot sends one DetectObjectBoundary
 for its region; the server forwards it to the C cameras that see it; each calls the
 robot back with one four-vertex object. Watch round: one period of a standing
-WatchObjectBoundary (its callbacks only). Image sharing: bench/nodes/image_camera.py
+WatchObjectBoundary (its callbacks only). Fused round: each robot sends one
+DetectObjectBoundary with ``fused`` true; the server forwards it to the same C cameras with
+its own callback service (``/drvs/fusion_callback``), they call the server back, and the
+server calls the robot back once with every object once (docs/interface.md, "Fused mode"):
+its bytes are request, forwards, the cameras' callbacks to the server and the one
+callback to the robot. Image sharing: bench/nodes/image_camera.py
 publishes one JPEG (quality 80) per camera, bench/nodes/image_robot.py (every robot
 subscribes to every camera) decodes and segments each with the same colour algorithm.
 Two frames: the rendered view, and a natural photograph (scipy's ``face``, shipped by
@@ -28,9 +33,9 @@ regions ``q`` by all 50 (robots 2-10 do not ask at 1×C); image cameras are trig
 groups (1, 2-20, 21-50), and as every image robot is subscribed all along, a 1×C image
 round counts robot 1's connections only. Robot CPU is the robot process's
 (time.process_time, every thread) over the round: for DRVS from the ask to the last
-callback, for image sharing from a mark (SIGUSR1) before the frames to the last frame
-handled. Where the DRVS robot's CPU goes: a robot with its service threads under cProfile
-asks a few 1×20 rounds of its own.
+callback (a fused round: to its one callback), for image sharing from a mark (SIGUSR1)
+before the frames to the last frame handled. Where the DRVS robot's CPU goes: a robot with
+its service threads under cProfile asks a few 1×20 rounds of its own, per camera and fused.
 """
 
 from __future__ import annotations
@@ -70,11 +75,15 @@ PAPER_KB = {
     (10, 20): (82.0, 4.0, 14040.0, 1400.0),  # image: not in Table 1, 70.2 kB per image as it computes
     (10, 50): (202.0, 10.0, 35100.0, 3500.0),
 }
-SERVER_PARAMS = {'forward_timeout': 10.0, 'check_timeout': 5.0}
+SERVER_PARAMS = {'forward_timeout': 10.0, 'check_timeout': 5.0, 'fused_deadline': 10.0, 'track_coast': 30.0}
 VISION_PARAMS = {'callback_timeout': 10.0, 'register_timeout': 10.0}
-"""The nodes' timeouts (2 s, 1 s by default) are raised: the bench's 80 processes on a shared
-machine can hold a call that long, and a dropped call would leave a round short. Bytes do
-not depend on them."""
+"""The nodes' timeouts (2 s, 1 s by default; the fused deadline 2 s) are raised: the bench's 80
+processes on a shared machine can hold a call that long, and a dropped call would leave a round
+short. Bytes do not depend on them. The server's ``~track_coast`` (2 s) too: at 10×50 a frame
+reaches the server up to 10 s after its capture (50 vision systems render and segment 800×600
+for 10 requests each on a shared machine), and a track last seen longer than ``~track_coast``
+before the server's clock ends before its round is answered: the fused callback would carry no
+object."""
 GROUPS = ((1, 1), (2, 20), (21, 50))
 """Image cameras per process (first, last): triggered together."""
 PHOTO = (
@@ -229,7 +238,7 @@ class WireBench:
         self.owners: dict[int, str] = {}
         self.watch_forwards = 0
         self.profiled: Robot | None = None
-        self.incomplete_rounds = 0  # one-shot rounds asked again: a vision system dropped a callback
+        self.incomplete_rounds = 0  # rounds asked again: a vision system dropped a callback
         self.cameras = cameras
         self.resolution = resolution
         self.dir = ctx.work_dir / 'wire'
@@ -439,6 +448,8 @@ def category(connection: capture.Connection) -> str:
         return 'forward'
     if name.endswith('/watch_object_boundary'):
         return 'watch_forward'
+    if name.endswith('/fusion_callback'):
+        return 'fusion_callback'
     if name.endswith('/callback_coordinates'):
         return 'callback'
     return 'other' if connection.kind != 'unknown' else 'unknown'
@@ -459,6 +470,7 @@ class Counted:
 
 ROUND_CATEGORIES = {
     'oneshot': ('request', 'forward', 'callback'),
+    'fused': ('request', 'forward', 'fusion_callback', 'callback'),  # callback: the server's, to the robot
     'watch': ('callback', 'watch_request', 'watch_forward'),
     'image': ('image',),
 }
@@ -597,8 +609,9 @@ def measure(ctx: Context, bench: WireBench, sizes, kinds: list[str], rounds: int
         label = f'{robots_n}x{cameras_n}'
         results['sizes'][label] = measure_size(ctx, bench, (robots_n, cameras_n), kinds, rounds, fresh)
         results['startup'][label] = round(results['sizes'][label].pop('ready') - t0, 2)
-        if 'profile' in results['sizes'][label]:
-            results['profile'] = results['sizes'][label].pop('profile')
+        for key in ('profile', 'profile_fused'):
+            if key in results['sizes'][label]:
+                results[key] = results['sizes'][label].pop(key)
         fresh = False
     results['capture'] = capture_summary(bench)
     results['dropped_callbacks'] = dropped_callbacks(bench)
@@ -625,6 +638,7 @@ def unavailable(section: Section, why: str) -> Section:
         ('callback_bytes_one_object', 200, True),
         ('image_to_drvs_bytes_10x50_photo', 174, False),
         ('robot_cpu_image_over_drvs', 100, False),
+        ('robot_cpu_image_over_drvs_fused', 100, False),
     ):
         section.targets[name] = target(None, limit, at_most=at_most, note=why)
     section.markdown = (
@@ -664,9 +678,17 @@ def measure_size(ctx, bench: WireBench, size, kinds, rounds: int, fresh: bool) -
         ctx.progress(f'wire: {label} DRVS one-shot round {number + 1}/{rounds}')
         oneshot.append(oneshot_round(bench, drvs_robots, region, cameras_n, owners))
     out['drvs_oneshot'] = summarise(oneshot)
+    # DRVS fused rounds: the server's first fused rounds open the cameras' connections to it.
+    warm_up(bench, drvs_robots + ([profiled] if profiled else []), region, cameras_n, fused=True)
+    fused = []
+    for number in range(rounds):
+        ctx.progress(f'wire: {label} DRVS fused round {number + 1}/{rounds}')
+        fused.append(fused_round(bench, drvs_robots, region, cameras_n, owners))
+    out['drvs_fused'] = summarise(fused)
     if profiled:
         ctx.progress(f'wire: {label} profiling a DRVS robot')
         out['profile'] = profile_robot(bench, profiled, ctx.pick(0, 2, 10))
+        out['profile_fused'] = profile_robot(bench, profiled, ctx.pick(0, 5, 20), fused=True)
     # A DRVS watch: one period.
     ctx.progress(f'wire: {label} DRVS watch, {rounds} period(s)')
     out['drvs_watch'] = watch_periods(bench, drvs_robots, region, cameras_n, rounds, owners)
@@ -689,7 +711,10 @@ STALL = VISION_PARAMS['callback_timeout'] + 3.0
 
 def arrived(bench: WireBench, robots: list[Robot], asked: dict[int, dict], cameras_n: int) -> bool:
     """Wait until every robot has ``cameras_n`` callbacks of its request; False if they stall
-    (a vision system dropped one: logged in its log) before."""
+    (a vision system dropped one: logged in its log) before. A fused request: until its one
+    callback came, False unless all ``cameras_n`` vision systems answered in it."""
+    if asked[robots[0].index]['request_id'].startswith('fused_'):
+        return fused_arrived(bench, robots, asked, cameras_n)
     last = {'count': -1, 'at': time.monotonic()}
 
     def done():
@@ -705,14 +730,28 @@ def arrived(bench: WireBench, robots: list[Robot], asked: dict[int, dict], camer
     return bench.wait(done, 3600.0, 'callbacks') == 'all'
 
 
-def warm_up(bench: WireBench, robots: list[Robot], region: str, cameras_n: int) -> None:
+def fused_arrived(bench: WireBench, robots: list[Robot], asked: dict[int, dict], cameras_n: int) -> bool:
+    """Wait for each robot's one fused callback (the server sends it by ``~fused_deadline`` at the
+    latest); True when every one says all ``cameras_n`` vision systems answered."""
+
+    def answers():
+        found = [callbacks_of(r, asked[r.index]['request_id']) for r in robots]
+        return found if all(found) else None
+
+    timeout = SERVER_PARAMS['fused_deadline'] + bench.ctx.pick(20.0, 60.0, 120.0)
+    found = bench.wait(answers, timeout, 'fused callbacks')
+    return all(x[0]['status'] == 0 and x[0]['answered'] == cameras_n for x in found)
+
+
+def warm_up(bench: WireBench, robots: list[Robot], region: str, cameras_n: int, fused: bool = False) -> None:
     """Rounds not counted, until one reaches every robot from all its cameras: the cameras open
-    their connections to the robots' callback services (a first contact can be dropped, see
-    :func:`dropped_callbacks`) and every registration is in the server's registry."""
+    their connections to the robots' callback services (fused: to the server's; a first contact
+    can be dropped, see :func:`dropped_callbacks`) and every registration is in the server's
+    registry."""
     timeout = bench.ctx.pick(30.0, 180.0, 600.0)
     deadline = time.monotonic() + timeout
     while True:
-        asked = {robot.index: ask(bench, robot, region) for robot in robots}
+        asked = {robot.index: ask(bench, robot, region, fused) for robot in robots}
         reached = {i: x['vision_systems'] for i, x in asked.items()}
         if all(n == cameras_n for n in reached.values()) and arrived(bench, robots, asked, cameras_n):
             return
@@ -725,9 +764,10 @@ def warm_up(bench: WireBench, robots: list[Robot], region: str, cameras_n: int) 
             time.sleep(0.5)  # a registration answered, not in the registry yet: ask again
 
 
-def profile_robot(bench: WireBench, robot: Robot, rounds: int) -> dict:
+def profile_robot(bench: WireBench, robot: Robot, rounds: int, fused: bool = False) -> dict:
     """Where a DRVS robot's CPU goes: ``robot`` (see :meth:`WireBench.start_profiled`) asks ``rounds``
-    1×20 one-shot rounds (the profiler inflates its numbers: only the shares count)."""
+    1×20 one-shot rounds, per camera or fused (the profiler inflates its numbers: only the shares
+    count). Per callback: per camera, 20 a round; fused, one a round (so: per round)."""
     import pstats
 
     path = bench.profile_path
@@ -737,11 +777,12 @@ def profile_robot(bench: WireBench, robot: Robot, rounds: int) -> dict:
     done.unlink()
     before = pstats.Stats(*sorted(map(str, path.parent.glob(path.name + '.[0-9]*')))).stats
     for _ in range(rounds):
-        arrived(bench, [robot], {robot.index: ask(bench, robot, 'p')}, 20)
+        arrived(bench, [robot], {robot.index: ask(bench, robot, 'p', fused)}, 20)
     os.kill(robot.node.pid, signal.SIGUSR2)
     bench.wait(done.exists, 20.0, 'the profile')
+    done.unlink()
     stats = pstats.Stats(*sorted(map(str, path.parent.glob(path.name + '.[0-9]*')))).stats
-    callbacks = rounds * 20
+    callbacks = rounds * (1 if fused else 20)
     rows = []
     for key, (_, calls, tottime, cumtime, _) in stats.items():
         old = before.get(key, (0, 0, 0.0, 0.0, None))
@@ -755,6 +796,7 @@ def profile_robot(bench: WireBench, robot: Robot, rounds: int) -> dict:
     top = sorted(rows, key=lambda r: -r[2])[:12]
     return {
         'rounds': rounds,
+        'fused': fused,
         'callbacks': callbacks,
         'profiled_us_per_callback': total / callbacks * 1e6 if callbacks else math.nan,
         'groups_us_per_callback': {
@@ -794,9 +836,10 @@ def dropped_callbacks(bench: WireBench) -> int:
     return sum(node.log(100_000).count('dropped: service /robot') for node in bench.vision)
 
 
-def ask(bench: WireBench, robot: Robot, region: str) -> dict:
+def ask(bench: WireBench, robot: Robot, region: str, fused: bool = False) -> dict:
+    """Have ``robot`` ask about its region ``region`` once (``fused``: with fused true); its ``ask`` line."""
     before = len([x for x in robot.lines.read() if x['event'] == 'ask'])
-    bench.trigger(robot, f'ask_{region}')
+    bench.trigger(robot, f'fuse_{region}' if fused else f'ask_{region}')
     asks = [x for x in robot.lines.read() if x['event'] == 'ask']
     if len(asks) <= before:
         raise AssertionError(f'robot{robot.index} did not log its ask')
@@ -852,6 +895,39 @@ def oneshot_round(bench: WireBench, robots: list[Robot], region: str, cameras_n:
     result['attempts'] = attempts
     if len(robots) == 1 and cameras_n == 1:
         result['callback'] = one_callback(counted, robots[0])
+    return result
+
+
+def fused_round(bench: WireBench, robots: list[Robot], region: str, cameras_n: int, owners) -> dict:
+    """One fused round: every robot asks once with ``fused`` true and gets one callback; asked again
+    (up to 3 times) if the server answered it without every camera (a callback to it dropped)."""
+    attempts = 0
+    while True:
+        attempts += 1
+        before = bench.settle()
+        asked = {robot.index: ask(bench, robot, region, fused=True) for robot in robots}
+        if fused_arrived(bench, robots, asked, cameras_n):
+            break
+        bench.incomplete_rounds += 1
+        if attempts == 3:
+            raise AssertionError(f'three {len(robots)}x{cameras_n} fused rounds in a row lacked a camera')
+    callbacks = {i: callbacks_of(bench.drvs_robots[i], x['request_id']) for i, x in asked.items()}
+    after = bench.settle()
+    counted = count(before, after, ROUND_CATEGORIES['fused'], owners, names(robots))
+    cpu = [max(x['cpu'] for x in callbacks[i]) - asked[i]['cpu0'] for i in asked]
+    every = [x for found in callbacks.values() for x in found]
+    result = round_result(counted, ROUND_CATEGORIES['fused'], robots, owners, cpu)
+    result.update(
+        vertices=sorted({x['vertices'] for x in every}),
+        objects=sorted({x['objects'] for x in every}),
+        handler_per_callback=statistics.fmean(x['handler'] for x in every),
+        callbacks_per_robot=statistics.fmean(len(found) for found in callbacks.values()),
+        ask_cpu=statistics.fmean(x['cpu'] - x['cpu0'] for x in asked.values()),
+        latency=statistics.median(
+            x['received'] - asked[i]['sent'] for i, found in callbacks.items() for x in found
+        ),
+        attempts=attempts,
+    )
     return result
 
 
@@ -1023,48 +1099,51 @@ def report(ctx: Context, section: Section, results: dict, sizes, kinds) -> Secti
         label = f'{robots_n}x{cameras_n}'
         entry = measured[label]
         paper = PAPER_KB[(robots_n, cameras_n)]
-        one, watch = entry['drvs_oneshot'], entry['drvs_watch']
-        row = [
-            label,
-            f'{kb(one["total"]):.2f} / {kb(one["received_per_robot"]):.2f}',
-            f'{kb(watch["total"]):.2f} / {kb(watch["received_per_robot"]):.2f}',
-            f'{paper[0]:g} / {paper[1]:g}',
+        one, watch, fused = entry['drvs_oneshot'], entry['drvs_watch'], entry['drvs_fused']
+        row = [label] + [
+            f'{kb(drvs["total"]):.2f} / {kb(drvs["received_per_robot"]):.2f}' for drvs in (one, watch, fused)
         ]
+        row.append(f'{paper[0]:g} / {paper[1]:g}')
         for kind in ('render', 'photo'):
             image = entry.get(f'image_{kind}')
             row.append(f'{kb(image["total"]):,.1f} / {kb(image["received_per_robot"]):,.1f}' if image else '')
         row.append(f'{paper[2]:g} / {paper[3]:g}')
         best = entry.get('image_photo') or entry['image_render']
-        row.append(f'{best["total"] / one["total"]:.0f}')
+        row += [f'{best["total"] / one["total"]:.0f}', f'{best["total"] / fused["total"]:.0f}']
         rows.append(row)
     header = [
         'robots×cameras',
         'DRVS one-shot',
         'DRVS watch (1 period)',
+        'DRVS fused',
         'paper DRVS',
         'image: render',
         'image: photo',
         'paper image',
         'image (photo, else render) / DRVS one-shot',
+        '… / DRVS fused',
     ]
     cpu_rows = []
     for robots_n, cameras_n in sizes:
         entry = measured[f'{robots_n}x{cameras_n}']
-        one, watch = entry['drvs_oneshot'], entry['drvs_watch']
-        row = [f'{robots_n}x{cameras_n}', one['cpu_per_robot'] * 1e3, watch['cpu_per_robot'] * 1e3]
+        one, watch, fused = entry['drvs_oneshot'], entry['drvs_watch'], entry['drvs_fused']
+        row = [f'{robots_n}x{cameras_n}'] + [drvs['cpu_per_robot'] * 1e3 for drvs in (one, watch, fused)]
         for kind in ('render', 'photo'):
             image = entry.get(f'image_{kind}')
             cpu = image['cpu_per_robot'] if image else None
-            row += [cpu * 1e3, cpu / one['cpu_per_robot']] if cpu else ['', '']
+            row += [cpu * 1e3, cpu / one['cpu_per_robot'], cpu / fused['cpu_per_robot']] if cpu else [''] * 3
         cpu_rows.append(row)
     cpu_header = [
         'robots×cameras',
         'DRVS one-shot ms',
         'DRVS watch ms',
+        'DRVS fused ms',
         'image render ms',
-        'ratio',
+        '/ one-shot',
+        '/ fused',
         'image photo ms',
-        'ratio',
+        '/ one-shot',
+        '/ fused',
     ]
     # Targets.
     first = measured[f'{sizes[0][0]}x{sizes[0][1]}']
@@ -1090,14 +1169,26 @@ def report(ctx: Context, section: Section, results: dict, sizes, kinds) -> Secti
             at_most=False,
             note=f'no 10×50 at size {ctx.size}; at {largest[0]}×{largest[1]} ({ratio_kind}): {ratio:.0f}',
         )
-    cpu_ratio = big[f'image_{ratio_kind}']['cpu_per_robot'] / big['drvs_oneshot']['cpu_per_robot']
-    section.targets['robot_cpu_image_over_drvs'] = target(
-        cpu_ratio,
-        100,
-        at_most=False,
-        note=f'at {largest[0]}×{largest[1]}, {ratio_kind}: image sharing / DRVS one-shot robot CPU per round',
-    )
-    results['ratios'] = {'bytes_image_over_drvs_largest': ratio, 'cpu_image_over_drvs_largest': cpu_ratio}
+    image_cpu = big[f'image_{ratio_kind}']['cpu_per_robot']
+    cpu_ratio = image_cpu / big['drvs_oneshot']['cpu_per_robot']
+    fused_ratio = image_cpu / big['drvs_fused']['cpu_per_robot']
+    for name, value, drvs in (
+        ('robot_cpu_image_over_drvs', cpu_ratio, 'DRVS one-shot (per camera)'),
+        ('robot_cpu_image_over_drvs_fused', fused_ratio, 'DRVS fused'),
+    ):
+        section.targets[name] = target(
+            value,
+            100,
+            at_most=False,
+            note=f'at {largest[0]}×{largest[1]}, {ratio_kind}: image sharing / {drvs} robot CPU per round',
+        )
+    results['ratios'] = {
+        'bytes_image_over_drvs_largest': ratio,
+        'bytes_image_over_drvs_fused_largest': big[f'image_{ratio_kind}']['total']
+        / big['drvs_fused']['total'],
+        'cpu_image_over_drvs_largest': cpu_ratio,
+        'cpu_image_over_drvs_fused_largest': fused_ratio,
+    }
     section.plots = [plot(ctx, measured, sizes)]
     capture_info = results['capture']
     width, height = results['resolution']
@@ -1108,7 +1199,13 @@ def report(ctx: Context, section: Section, results: dict, sizes, kinds) -> Secti
         'meanwhile, are in latest.json).',
         '',
         table(header, rows),
-        'Robot CPU per round and robot (process CPU, every thread), same run; ratio = image / DRVS one-shot:',
+        'DRVS fused: the robot sends one request and gets one callback (every object once) from the server, '
+        "which gathers the cameras' callbacks on `/drvs/fusion_callback`; its bytes are the request, the "
+        "forwards, the cameras' callbacks to the server and the one callback to the robot. "
+        + fused_line(measured, sizes),
+        '',
+        'Robot CPU per round and robot (process CPU, every thread), same run; image CPU over DRVS one-shot '
+        '(per camera) and over DRVS fused:',
         '',
         table(cpu_header, cpu_rows),
         f'One callback with one four-vertex object: {note} (paper: under 200 B); '
@@ -1126,6 +1223,27 @@ def report(ctx: Context, section: Section, results: dict, sizes, kinds) -> Secti
     lines[-2:-2] = cpu_breakdown(results, sizes)
     section.markdown = '\n'.join(lines) + '\n'
     return section
+
+
+def fused_line(measured: dict, sizes) -> str:
+    """One sentence: what a robot gets in a fused round at the largest size, and how its CPU splits."""
+    robots_n, cameras_n = sizes[-1]
+    fused = measured[f'{robots_n}x{cameras_n}']['drvs_fused']
+    to_server, to_robots = (kb(fused['by_category'].get(k, 0)) for k in ('fusion_callback', 'callback'))
+    objects = ', '.join(map(str, fused['objects']))
+    calls = fused['messages'].get('callback', 0) / 2  # requests and responses
+    each = fused['by_category'].get('callback', 0) / calls if calls else math.nan
+    return (
+        f'At {robots_n}×{cameras_n} each robot got {fused["callbacks_per_robot"]:g} callback per fused round '
+        f'(objects in it: {objects}; p50 {fused["latency"] * 1e3:.0f} ms after its request), the '
+        f"cameras' callbacks ({cameras_n} a robot) going to the server instead ({to_server:.1f} kB a round "
+        f'in all, against {to_robots:.2f} kB to the robots, {each:.0f} B a fused callback with its response: '
+        'it names every vision system that answered (`answered`) and, for each object, those that saw it '
+        "(`seen_by`), by their service names); of the robot's "
+        f'{fused["cpu_per_robot"] * 1e6:.0f} µs of CPU per round, {fused["ask_cpu"] * 1e6:.0f} µs went on '
+        f'the ask (until the acknowledgement) and {fused["handler_per_callback"] * 1e6:.0f} µs on its '
+        'callback handler.'
+    )
 
 
 def messages_line(oneshot: dict) -> str:
@@ -1154,21 +1272,37 @@ def cpu_breakdown(results: dict, sizes) -> list[str]:
         f"robot's handler; image sharing {per_frame * 1e3:.1f} ms per frame: decoding {decode * 1e3:.1f} ms, "
         f'segmenting {(work - decode) * 1e3:.1f} ms, receiving {(per_frame - work) * 1e3:.1f} ms. The DRVS '
         "robot's cost is rospy's per call: its TCPROS service server receives, deserialises (genpy), calls "
-        'the handler, serialises and sends, in Python, in a thread per connection. Outside the project; '
-        'what would remove it: a robot in C++ (roscpp), or fewer calls: one callback per request carrying '
-        "every camera's objects (an interface change: the server would gather the answers).",
+        'the handler, serialises and sends, in Python, in a thread per connection. A fused request makes '
+        'it one call per round (the server gathers the cameras\' answers) however many cameras see the '
+        f'region: {entry["drvs_fused"]["cpu_per_robot"] * 1e6:.0f} µs of robot CPU per fused round here.',
     ]
-    profile = results.get('profile')
+    profile, fused = results.get('profile'), results.get('profile_fused')
     if not profile:
         return [*lines, '']
     groups = profile['groups_us_per_callback']
     total = sum(groups.values())
+    fused_groups = fused['groups_us_per_callback'] if fused and fused['rounds'] else {}
+    fused_total = sum(fused_groups.values())
+    rows = [
+        [k, v, f'{v / total:.0%}']
+        + ([fused_groups.get(k, 0.0), f'{fused_groups.get(k, 0.0) / fused_total:.0%}'] if fused_total else [])
+        for k, v in groups.items()
+    ]
+    header = ['code', 'per camera: µs / callback', 'share']
+    header += ['fused: µs / round (one callback)', 'share'] if fused_total else []
     lines += [
         '',
         f"cProfile (thread CPU time) of a DRVS robot's service threads, {profile['callbacks']} callbacks at "
-        '1×20 (µs per callback; the profiler inflates every call: the shares count):',
+        '1×20 (µs per callback; the profiler inflates every call: the shares count)'
+        + (
+            f", and {fused['rounds']} fused 1×20 rounds of the same robot (µs per round: its ask and its one "
+            'callback)'
+            if fused_total
+            else ''
+        )
+        + ':',
         '',
-        table(['code', 'µs / callback', 'share'], [[k, v, f'{v / total:.0%}'] for k, v in groups.items()]),
+        table(header, rows),
         table(
             ['function (top by own time)', 'calls / callback', 'own µs', 'cumulative µs'],
             [
@@ -1192,6 +1326,7 @@ def plot(ctx: Context, measured: dict, sizes) -> str:
     series = [
         ('DRVS one-shot', lambda e: e['drvs_oneshot']['total'], 'o-'),
         ('DRVS watch (1 period)', lambda e: e['drvs_watch']['total'], 's-'),
+        ('DRVS fused', lambda e: e['drvs_fused']['total'], 'D-'),
         ('image sharing, render', lambda e: e.get('image_render', {}).get('total'), '^-'),
         ('image sharing, photo', lambda e: e.get('image_photo', {}).get('total'), 'v-'),
     ]

@@ -3,7 +3,7 @@
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #                                 [--camera-source render|topic] [--requests poll|watch] [--rviz]
-#                                 [--record] [--hosts] [--robot-link RATE]
+#                                 [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]
 #   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
@@ -35,6 +35,10 @@
 # the robot's own default, standing requests).
 # With --rviz, RViz opens on the run with rviz/drvs.rviz (needs a display and
 # Debian's rviz: make rviz-setup installs it).
+# With --gateway, drvs_gateway runs with DRVS (docs/gateway.md) on --gateway-bind (default
+# 127.0.0.1:8080; with --hosts, port 8080 of host master), with a tokens file in DIR made for the
+# run: the script prints the floor-plan page's URL and the run's token (also in DIR/gateway.token,
+# readable by its owner only), which the page asks for.
 # With --record, `rosbag record` writes the run to DIR/run.bag: started before
 # the other nodes and stopped after them, it holds every DRVS topic (latched ones
 # and tf too, so `rosbag play` drives RViz again) and the recorder's samples, from
@@ -52,7 +56,7 @@ set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
 CAMERAS_PER_HOST=8
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--rviz] [--record] [--hosts] [--robot-link RATE]"
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
 help() {
   cat <<EOF
 $synopsis
@@ -68,6 +72,9 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
   --requests MODE        every robot asks DRVS by poll (one-shot requests) or watch (standing requests);
                          default: the robot's own default (watch)
   --rviz                 open RViz on the run with rviz/drvs.rviz (needs a display)
+  --gateway              run drvs_gateway too (DRVS over HTTP, docs/gateway.md) and print the URL of its live
+                         floor-plan page and the run's token (made for the run; also in DIR/gateway.token)
+  --gateway-bind H:P     where the gateway listens (default 127.0.0.1:8080; with --hosts, port 8080 of host master)
   --record               record the run's topics into DIR/run.bag (drvs_report DIR/run.bag replays it)
   --hosts                every part on a network host of its own (Linux network namespaces; needs root)
   --robot-link RATE      with --hosts: limit the first robot's link to RATE both ways, e.g. 2mbit
@@ -88,7 +95,7 @@ fail() {  # fail MESSAGE: one line on stderr, exit 2 (before anything started)
   exit 2
 }
 
-world="" timeout="" out="" external=0 stay=0 source=render requests="" rviz=0 record=0 hosts=0 link=""
+world="" timeout="" out="" external=0 stay=0 source=render requests="" rviz=0 record=0 hosts=0 link="" gateway=0 gateway_bind=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
@@ -97,6 +104,8 @@ while [ $# -gt 0 ]; do
     --stay) stay=1; shift ;;
     --rviz) rviz=1; shift ;;
     --record) record=1; shift ;;
+    --gateway) gateway=1; shift ;;
+    --gateway-bind) [ $# -ge 2 ] || usage; gateway_bind=$2; shift 2 ;;
     --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
     --requests) [ $# -ge 2 ] || usage; requests=$2; shift 2 ;;
     --hosts) hosts=1; shift ;;
@@ -112,6 +121,8 @@ done
 [[ "$source" =~ ^(render|topic)$ ]] || fail "--camera-source is render or topic, got $source"
 [[ "$requests" =~ ^(|poll|watch)$ ]] || fail "--requests is poll or watch, got $requests"
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
+[ -z "$gateway_bind" ] || [ $gateway -eq 1 ] || fail "--gateway-bind needs --gateway"
+[ -z "$gateway_bind" ] || [[ "$gateway_bind" =~ ^(\[[0-9a-fA-F:]+\]|[^:]+):[0-9]+$ ]] || fail "--gateway-bind needs HOST:PORT, got $gateway_bind"
 [ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
 [ -x "$root/.venv/bin/python" ] || fail "no .venv: run scripts/setup.sh (or make demo) first"
 # Every problem of the world file at once, before anything starts (nodes/drvs_check_world).
@@ -321,6 +332,28 @@ sys.exit(0 if done.wait(60.0) else 1)
 EOF
 if [ $rviz -eq 1 ]; then
   start rviz master rviz -d "$root/rviz/drvs.rviz"
+fi
+if [ $gateway -eq 1 ]; then
+  # A token made for this run: the page asks for it (docs/gateway.md, "The floor-plan page").
+  [ -n "$gateway_bind" ] || { if [ $hosts -eq 1 ]; then gateway_bind=$master_ip:8080; else gateway_bind=127.0.0.1:8080; fi; }
+  rm -f "$out/gateway-tokens.json" "$out/gateway.token"
+  (umask 077 && "$py" "$root/nodes/drvs_token" add page --file "$out/gateway-tokens.json" >"$out/gateway.token" 2>"$out/drvs_token.log") \
+    || { echo "run_scenario: --gateway: making a token failed" >&2; exit 1; }
+  start drvs_gateway master "$py" "$root/nodes/drvs_gateway" __name:=drvs_gateway _bind:="$gateway_bind" \
+    _tokens:="$out/gateway-tokens.json"
+  gateway_url=http://$gateway_bind
+  "${at_master[@]}" "$py" - "$gateway_url/v1/openapi.json" <<'EOF' || { echo "run_scenario: drvs_gateway did not answer at $gateway_url; see $out/drvs_gateway.log" >&2; exit 1; }
+import sys, urllib.request
+from drvs.testing.harness import wait_for
+def answers():
+    try:
+        with urllib.request.urlopen(sys.argv[1], timeout=1) as response:
+            return response.status == 200
+    except OSError:
+        return False
+wait_for(answers, 20.0, 'drvs_gateway to answer', interval=0.2)
+EOF
+  echo "run_scenario: the floor plan: $gateway_url/ (token $(cat "$out/gateway.token"), also in $out/gateway.token)"
 fi
 start recorder sim "$py" "$root/nodes/scenario_recorder" __name:=scenario_recorder _world:="$world" _out:="$out"
 recorder_pid=${pids[-1]}

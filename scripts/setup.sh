@@ -4,7 +4,8 @@
 # Installs the Debian packages the project needs, creates .venv from Debian's
 # /usr/bin/python3 with --system-site-packages, installs pybullet and the test
 # tools into it, and installs the project (which generates drvs.msg and
-# drvs.srv); with --rviz also Debian's rviz and xvfb. Idempotent: a second run that finds everything in place does no
+# drvs.srv), with headless Chromium and Selenium for the browser test; with --rviz also Debian's rviz
+# and xvfb. Idempotent: a second run that finds everything in place does no
 # installs and finishes within seconds. Works as root or through sudo.
 set -euo pipefail
 
@@ -27,6 +28,9 @@ APT_PACKAGES=(
   python3-mypy  # make lint and test/project/test_types.py: types of the pure packages
   python3-pandas python3-xmltodict  # py-motmetrics' dependencies (the scenario report's tracking metrics)
   python3-aiohttp  # drvs_gateway: DRVS over HTTP and Server-Sent Events (docs/gateway.md)
+  # The floor-plan page's test in a real browser (test/scenarios/test_gateway_page.py): always
+  # installed, since `make test` (and so CI) runs it; about 300 MB.
+  chromium chromium-driver python3-selenium
   nodejs  # the roslibjs example of drvs_gateway's rosbridge endpoint, run by test/live/test_rosbridge.py
 )
 # npm: Debian's, unless a Node.js that brings its own is installed (NodeSource's conflicts with Debian's npm).

@@ -3,8 +3,10 @@
 
 What a robot does with DRVS for one round of vision: one DetectObjectBoundary request
 to the server (or one WatchObjectBoundary that then stands), then it receives the
-vision systems' callbacks on its own CallbackCoordinates service. It neither decodes
-nor segments anything. CPU time is the process's (time.process_time: every thread).
+vision systems' callbacks on its own CallbackCoordinates service — or, asked with
+``fused`` true, the server's one callback with every object once (docs/interface.md,
+"Fused mode"). It neither decodes nor segments anything. CPU time is the process's
+(time.process_time: every thread).
 
 CLI (private parameters)::
 
@@ -16,6 +18,7 @@ CLI (private parameters)::
 - ``~regions``: named regions, each [min_x, min_y, max_x, max_y] in ``map`` (required). For each
   name ``n`` it serves (roscpp/Empty, each returns once the server acknowledged):
   ``~ask_n``: one DetectObjectBoundary (request_id ``n<N>``, N counting this robot's asks);
+  ``~fuse_n``: the same with ``fused`` true (request_id ``fused_n<N>``), answered by one callback;
   ``~watch_n``: one WatchObjectBoundary (request_id ``watch_n``) of ``~period`` seconds for
   ``~duration`` seconds, whose callbacks then come every period; ``~unwatch_n`` cancels it
   (duration 0).
@@ -30,7 +33,8 @@ Lines (``event`` says which): ``ask`` / ``watch`` / ``unwatch`` (request_id, sta
 vision_systems, ``sent``: time.time() before sending, ``cpu0``: process CPU when the handler
 started, ``cpu`` after the acknowledgement); ``callback`` (request_id, vision_system, objects,
 vertices, ``received``: time.time() on arrival, ``stamp``: the frame's, ``cpu`` after handling,
-``handler``: thread CPU in the handler, this file's code but the final write);
+``handler``: thread CPU in the handler, this file's code but the final write; a fused callback
+adds ``fused``, ``status`` and how many vision systems ``answered``, ``refused`` and were ``missing``);
 ``mark`` (``cpu``), written when the process gets SIGUSR1, so a bench can read the CPU between
 rounds without a ROS call.
 """
@@ -84,6 +88,7 @@ class BenchRobot:
         rospy.Service('~callback_coordinates', CallbackCoordinates, self.on_callback)
         for name in self.regions:
             rospy.Service(f'~ask_{name}', Empty, lambda _, name=name: self.ask(name))
+            rospy.Service(f'~fuse_{name}', Empty, lambda _, name=name: self.ask(name, fused=True))
             rospy.Service(f'~watch_{name}', Empty, lambda _, name=name: self.ask_watch(name, self.duration))
             rospy.Service(f'~unwatch_{name}', Empty, lambda _, name=name: self.ask_watch(name, 0.0))
         signal.signal(signal.SIGUSR1, lambda *_: self.write({'event': 'mark', 'cpu': time.process_time()}))
@@ -95,14 +100,15 @@ class BenchRobot:
         self.detect.close()
         self.watch.close()
 
-    def ask(self, name: str) -> EmptyResponse:
+    def ask(self, name: str, fused: bool = False) -> EmptyResponse:
         cpu0 = time.process_time()
         self.asks += 1
         request = DetectObjectBoundaryRequest(
             algorithm=self.algorithm,
             region_of_interest=self.regions[name],
             callback_service=self.callback,
-            request_id=f'{name}{self.asks}',
+            request_id=f'fused_{name}{self.asks}' if fused else f'{name}{self.asks}',
+            fused=fused,
         )
         self.send('ask', self.detect, request, cpu0)
         return EmptyResponse()
@@ -147,6 +153,14 @@ class BenchRobot:
             'received': received,
             'stamp': request.stamp.to_sec(),
         }
+        if request.fused:
+            record.update(
+                fused=True,
+                status=request.status,
+                answered=len(request.answered),
+                refused=len(request.refused),
+                missing=len(request.missing),
+            )
         record['cpu'] = time.process_time()
         line = json.dumps(record)
         line = f'{line[:-1]}, "handler": {time.thread_time() - started}}}'  # the write below not in it

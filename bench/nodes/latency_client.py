@@ -22,13 +22,16 @@ acknowledgement says this many got the request, up to ``~settle`` seconds,
 default 60; then it waits for that many callbacks per request), ``~gap``,
 ``~timeout`` (s per request, default 5), ``~cpu_pid`` (a process whose CPU time,
 user + system from ``/proc``, is read when the measured rounds begin and end;
-default 0: none).
+default 0: none), ``~fused`` (default false: the requests are fused, docs/interface.md
+"Fused mode"; each is then answered by one callback from the server, ``first`` and ``last``
+are its time, and a round whose callback says fewer than ``~expect`` vision systems
+answered counts as short).
 
 Output: ``{"ready": time.time()}`` once the vision systems answer, then one line
 per measured round, ``{"round", "plain", "ack", "first", "last",
-"vision_systems", "callbacks", "status"}``, the times in seconds after the call
-was sent (``first`` / ``last`` null when no callback came), then ``{"done": true,
-"window": s, "cpu": s, "failed": n}`` (the measured rounds' wall time, the CPU
+"vision_systems", "callbacks", "status"}`` (fused: and ``"answered"``, ``"objects"``), the
+times in seconds after the call was sent (``first`` / ``last`` null when no callback came),
+then ``{"done": true, "window": s, "cpu": s, "failed": n}`` (the measured rounds' wall time, the CPU
 time ``~cpu_pid`` used meanwhile, and the rounds refused or short of callbacks).
 Exit code 0, or 1 when a round was refused or short of callbacks.
 """
@@ -54,12 +57,15 @@ class Callbacks:
 
     def __init__(self):
         self._times: dict[str, list[float]] = {}
+        self.answered: dict[str, tuple[int, int]] = {}  # request id -> (vision systems answered, objects)
         self._arrived = threading.Condition()
 
     def handle(self, request) -> CallbackCoordinatesResponse:
         now = time.perf_counter()
         with self._arrived:
             self._times.setdefault(request.request_id, []).append(now)
+            if request.fused:
+                self.answered[request.request_id] = (len(request.answered), len(request.objects))
             self._arrived.notify_all()
         return CallbackCoordinatesResponse()
 
@@ -108,6 +114,7 @@ def main() -> int:
     timeout = float(rospy.get_param('~timeout', 5.0))
     cpu_pid = int(rospy.get_param('~cpu_pid', 0))
     gap = float(rospy.get_param('~gap', 0.002))
+    fused = bool(rospy.get_param('~fused', False))
     region = rospy.get_param('~region', [0.0, 0.0, 1.0, 1.0])
     if isinstance(region, str):
         region = yaml.safe_load(region)
@@ -116,6 +123,7 @@ def main() -> int:
     request = DetectObjectBoundaryRequest(
         algorithm=rospy.get_param('~algorithm', 'colour:0,0,150,80,80,255'),
         callback_service=callback.resolved_name,
+        fused=fused,
     )
     box = request.region_of_interest
     box.min_x, box.min_y, box.max_x, box.max_y = map(float, region)
@@ -142,9 +150,10 @@ def main() -> int:
             sent = time.perf_counter()
             ack = server(request)
             ack_time = time.perf_counter() - sent
-            wanted = expect if ack.accepted else 0
+            wanted = (1 if fused else expect) if ack.accepted else 0
             times = callbacks.wait(request.request_id, wanted, timeout) if wanted else []
-            failed += not ack.accepted or len(times) < wanted
+            answered, objects = callbacks.answered.pop(request.request_id, (0, 0))
+            failed += not ack.accepted or len(times) < wanted or (fused and answered < expect)
             if number < 0:
                 continue
             record = {
@@ -157,6 +166,8 @@ def main() -> int:
                 'callbacks': len(times),
                 'status': ack.status,
             }
+            if fused:
+                record.update(answered=answered, objects=objects)
             handle.write(json.dumps(record) + '\n')
         window = time.perf_counter() - began
         cpu = cpu_seconds(cpu_pid) - cpu if cpu_pid else None

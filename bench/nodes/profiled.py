@@ -8,7 +8,9 @@ callees included, to a tally. When the node exits (SIGINT, as the harness stops
 it), ``OUT`` gets JSON ``{"module:Qualified.name": {"calls": n, "cpu_s": s}}``: the
 tallies as they were when its shutdown began (rospy's threads of persistent
 service connections then call ``receive_once`` in a busy loop until the process
-ends, which is no request's cost).
+ends, which is no request's cost). On SIGUSR1 it writes the tallies so far, in the
+same form, to ``OUT.mark`` (so a bench can tell two runs apart: the second is the
+final tallies less the mark).
 
 Why not cProfile: it measures wall-clock time, so on a shared, loaded machine a
 thread's wait for the CPU or for the interpreter lock counts as the function's; and
@@ -20,6 +22,7 @@ import functools
 import importlib
 import json
 import runpy
+import signal
 import sys
 import threading
 import time
@@ -66,6 +69,11 @@ def main() -> None:
     sys.path.insert(0, str(Path(node).resolve().parent))
     for step in filter(None, steps.split(',')):
         timed(step)
+
+    def mark(*_) -> None:  # on a thread: the main thread may hold _lock when the signal comes
+        threading.Thread(target=lambda: Path(out + '.mark').write_text(json.dumps(snapshot()))).start()
+
+    signal.signal(signal.SIGUSR1, mark)
     taken = []
     rospy.on_shutdown(lambda: taken.append(snapshot()))  # before the node's own hooks: they run in order
     try:

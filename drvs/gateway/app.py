@@ -38,6 +38,7 @@ from drvs.gateway.body import (
     region_query,
     watch_body,
 )
+from drvs.gateway.page import FloorPlan
 from drvs.gateway.params import GatewaySettings
 from drvs.gateway.routes import ROUTES, Route, openapi
 from drvs.gateway.tokens import OPEN, Forbidden, Grant, Tokens, Unauthorized
@@ -120,6 +121,7 @@ class Gateway:
         self._executor = ThreadPoolExecutor(settings.ros_calls, thread_name_prefix='drvs-call')
         self._calls: asyncio.Semaphore | None = None
         self._tasks: set[asyncio.Task] = set()
+        self.floor_plan = FloorPlan(self)
 
     # -- the application -----------------------------------------------------------------------
     def application(self) -> web.Application:
@@ -135,12 +137,14 @@ class Gateway:
             'objects': self.objects,
             'health': self.health,
             'openapi': self.openapi,
+            **self.floor_plan.handlers(),
         }
         for route in ROUTES:
             app.router.add_route(
                 route.method, route.path, self._guarded(route, handlers[route.name]), name=route.name
             )
         app.on_startup.append(self._started)
+        app.on_startup.append(self.floor_plan.started)
         app.on_shutdown.append(self._shutdown)
         return app
 
@@ -197,7 +201,16 @@ class Gateway:
             if route.op is None:
                 return await handler(request, OPEN)
             grant = OPEN
-            if self.tokens is not None:
+            if route.ticket:  # the rights of the token that asked for the ticket
+                grant = self.floor_plan.tickets.redeem(request.query.get('ticket'))
+                if grant is None:
+                    return self._refused(
+                        answers.unauthorized(
+                            'no ticket, or one used or expired: POST /v1/tickets for a new one'
+                        )
+                    )
+                grant.check(route.op)
+            elif self.tokens is not None:
                 try:
                     grant = self.tokens.authenticate(request.headers.get('Authorization'))
                 except Unauthorized as error:

@@ -46,6 +46,10 @@ class Drvs(Protocol):
     def objects(self) -> dict[str, Any] | None:
         """The newest ``/drvs/objects``: ``{"stamp", "algorithms", "objects"}``; None before the first."""
 
+    def robots(self) -> dict[str, dict[str, Any]]:
+        """The robots heard: name -> ``{"status": {...}, "path": [[x, y], ...]}`` (the floor-plan
+        page); each value is replaced, never changed in place, when a message comes."""
+
     def diagnostics(self) -> list[dict[str, Any]]:
         """The newest ``/diagnostics`` status of each DRVS node: ``{"name", "level", "message",
         "hardware_id", "values", "age"}``."""

@@ -7,6 +7,7 @@ or name one that is not served (a test checks both). The prose: docs/gateway.md.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,7 +21,8 @@ class Route:
     """One route: ``method`` and ``path`` (aiohttp's ``{name}`` placeholders, as OpenAPI's), the
     handler's ``name`` (the OpenAPI operationId), the token operation it needs (None: public), a
     summary, its JSON request schema (a name in :data:`SCHEMAS`), query parameters, and its answers
-    (status -> description, schema name or None)."""
+    (status -> description, schema name or None). A ``ticket`` route takes its rights from a
+    ``?ticket=`` of ``POST /v1/tickets`` instead of a header (a browser's EventSource sends none)."""
 
     method: str
     path: str
@@ -31,6 +33,7 @@ class Route:
     query: tuple[str, ...] = ()
     answers: dict[int, tuple[str, str | None]] = field(default_factory=dict)
     content_type: str = 'application/json'
+    ticket: bool = False
 
 
 _ERRORS: dict[int, tuple[str, str | None]] = {
@@ -138,6 +141,45 @@ ROUTES: tuple[Route, ...] = (
         None,
         'This document',
         answers={200: ('the OpenAPI 3 document', None)},
+    ),
+    Route(
+        'GET',
+        '/',
+        'page',
+        None,
+        'The live floor-plan page (it asks for a token)',
+        answers={200: ('an HTML page', None)},
+        content_type='text/html',
+    ),
+    Route(
+        'GET',
+        '/static/{name}',
+        'static',
+        None,
+        "The page's scripts and styles",
+        answers={200: ('a file', None), 404: ('no such file', 'Error')},
+        content_type='text/javascript',
+    ),
+    Route(
+        'POST',
+        '/v1/tickets',
+        'ticket',
+        'read',
+        'A ticket for `GET /v1/live`: good once, for 30 s (a browser cannot send a header there)',
+        answers=_answers(201, 'the ticket', 'Ticket', 401, 403, 429),
+    ),
+    Route(
+        'GET',
+        '/v1/live',
+        'live',
+        'read',
+        'The floor plan live: events `registry`, `objects`, `robot`, `path` (the whole state first)',
+        answers={
+            **_answers(200, 'a text/event-stream', None, 429),
+            401: ('no ticket, or one used or expired', 'Error'),
+        },
+        content_type='text/event-stream',
+        ticket=True,
     ),
 )
 
@@ -273,6 +315,14 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             'nodes': {'type': 'array', 'items': {'type': 'object'}},
         },
     },
+    'Ticket': {
+        'type': 'object',
+        'properties': {
+            'ticket': {'type': 'string'},
+            'expires_in': {'type': 'number', 'description': 'seconds'},
+            'live': {'type': 'string', 'description': 'the path of the live stream with the ticket'},
+        },
+    },
     'Error': {
         'type': 'object',
         'required': ['error', 'message'],
@@ -289,13 +339,17 @@ SCHEMAS: dict[str, dict[str, Any]] = {
 
 def _operation(route: Route) -> dict[str, Any]:
     operation: dict[str, Any] = {'operationId': route.name, 'summary': route.summary, 'responses': {}}
-    if route.op is not None:
+    if route.ticket:
+        operation['description'] = 'Needs a `ticket` from `POST /v1/tickets`.'
+    elif route.op is not None:
         operation['security'] = [{'bearer': []}]
         operation['description'] = f'Needs a token with the operation `{route.op}`.'
     parameters = [{'name': name, 'in': 'query', 'required': True, 'schema': _NUMBER} for name in route.query]
-    if '{id}' in route.path:
-        parameters.append({'name': 'id', 'in': 'path', 'required': True, 'schema': {'type': 'string'}})
-    if route.content_type == 'text/event-stream':
+    if route.ticket:
+        parameters.append({'name': 'ticket', 'in': 'query', 'required': True, 'schema': {'type': 'string'}})
+    for name in re.findall(r'{(\w+)}', route.path):
+        parameters.append({'name': name, 'in': 'path', 'required': True, 'schema': {'type': 'string'}})
+    if route.content_type == 'text/event-stream' and not route.ticket:
         parameters.append(
             {'name': 'Last-Event-ID', 'in': 'header', 'required': False, 'schema': {'type': 'string'}}
         )

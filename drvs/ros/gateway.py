@@ -4,9 +4,11 @@ thread and event loop, beside rospy, as a ROS client of DRVS like any robot.
 It hosts a CallbackCoordinates service for every request and watch it sends, calls the server's
 DetectObjectBoundary and WatchObjectBoundary with a deadline each
 (:class:`drvs.ros.service_client.ServiceClient`), and keeps the newest ``/drvs/registry``,
-``/drvs/objects`` and ``/diagnostics`` for the read routes. Beside it, on ``~rosbridge_bind``, the
-rosbridge endpoint (:mod:`drvs.gateway.bridge` with :mod:`drvs.ros.gateway_rosbridge`). The
-contract: docs/gateway.md; the parameters: docs/nodes/drvs_gateway.md.
+``/drvs/objects`` and ``/diagnostics`` for the read routes. For the floor-plan page it also follows
+every robot it finds on the master (a publisher of ``/<robot>/status``, drvs/RobotStatus) with its
+``/<robot>/path``. Beside it, on ``~rosbridge_bind``, the rosbridge endpoint
+(:mod:`drvs.gateway.bridge` with :mod:`drvs.ros.gateway_rosbridge`). The contract: docs/gateway.md;
+the parameters: docs/nodes/drvs_gateway.md.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from typing import Any
 import rospy
 from aiohttp import web
 from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Path
 
 from drvs.common.guard import SHUTDOWN
 from drvs.common.settings import ParamError
@@ -29,12 +32,13 @@ from drvs.gateway.app import Gateway
 from drvs.gateway.backend import Ack, NoServer
 from drvs.gateway.body import DetectBody, WatchBody
 from drvs.gateway.bridge import Rosbridge
+from drvs.gateway.live import MAX_ROBOTS
 from drvs.gateway.params import GatewaySettings, is_loopback, split_bind
 from drvs.gateway.tokens import Tokens, load_tokens
-from drvs.msg import BoundingBox, Registry, TrackedObjects
+from drvs.msg import BoundingBox, Registry, RobotStatus, TrackedObjects
 from drvs.ros.conversions import polygon_to_points
 from drvs.ros.gateway_rosbridge import RosBridgeBackend
-from drvs.ros.messages import registry_to_dict
+from drvs.ros.messages import registry_to_dict, robot_status_to_dict
 from drvs.ros.node import NodeScaffold
 from drvs.ros.service_client import ServiceCallError, ServiceClient
 from drvs.srv import (
@@ -53,6 +57,10 @@ MAX_DIAGNOSTICS = 512
 STOP_TIMEOUT = 5.0
 """Seconds the HTTP thread is given to close its connections and withdraw its watches."""
 DIAGNOSTIC_LEVELS = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+ROBOT_LOOKUP = 2.0
+"""Seconds between two looks on the master for new robots (publishers of drvs/RobotStatus)."""
+ROBOT_FIELDS = ('state', 'reason', 'stamp', 'distance_to_goal', 'position', 'heading', 'goal')
+"""What the floor-plan page gets of a robot's status."""
 
 
 def _number(value: float) -> float | None:
@@ -140,10 +148,11 @@ class RosDrvs:
         self.callback_service = callback_service
         self._local = threading.local()
         self._clients: list[ServiceClient] = []
-        self._lock = threading.Lock()  # guards _clients, _registry, _objects, _diagnostics
+        self._lock = threading.Lock()  # guards _clients, _registry, _objects, _diagnostics, _robots
         self._registry: list[dict[str, Any]] | None = None
         self._objects: dict[str, Any] | None = None
         self._diagnostics: dict[str, tuple[dict[str, Any], float]] = {}
+        self._robots: dict[str, dict[str, Any]] = {}
 
     def _client(self, service: str, service_class) -> ServiceClient:
         clients = self._local.__dict__.setdefault('clients', {})
@@ -238,6 +247,22 @@ class RosDrvs:
                     now,
                 )
 
+    def on_robot_status(self, robot: str, msg: RobotStatus) -> None:
+        status = robot_status_to_dict(msg)
+        view = {key: status[key] for key in ROBOT_FIELDS}
+        with self._lock:
+            self._robots[robot] = {**self._robots.get(robot, {}), 'status': view}
+
+    def on_robot_path(self, robot: str, msg: Path) -> None:
+        points = [[pose.pose.position.x, pose.pose.position.y] for pose in msg.poses]
+        points = [[_number(x), _number(y)] for x, y in points]
+        with self._lock:
+            self._robots[robot] = {**self._robots.get(robot, {}), 'path': points}
+
+    def robots(self) -> dict[str, dict[str, Any]]:
+        with self._lock:
+            return dict(self._robots)
+
     def registry(self) -> list[dict[str, Any]] | None:
         with self._lock:
             return self._registry
@@ -305,6 +330,9 @@ class GatewayNode:
         rospy.Subscriber(f'{server}/registry', Registry, self.drvs.on_registry, queue_size=1)
         rospy.Subscriber(f'{server}/objects', TrackedObjects, self.drvs.on_objects, queue_size=1)
         rospy.Subscriber('/diagnostics', DiagnosticArray, self.drvs.on_diagnostics, queue_size=10)
+        self._robots: set[str] = set()
+        self._follow_robots()
+        self.node.every(ROBOT_LOOKUP, self._follow_robots, 'robots')
         rospy.set_param('~url', self.url)
         rospy.set_param('~rosbridge_url', self.rosbridge_url)
         rospy.loginfo(
@@ -314,6 +342,27 @@ class GatewayNode:
             f' and {self.rosbridge_url} (rosbridge)' if self.rosbridge_url else '',
             f'{len(self.tokens)} token(s)' if self.tokens is not None else 'no tokens: loopback only',
         )
+
+    def _follow_robots(self) -> None:
+        """Subscribe to the status and path of every robot on the master not yet followed."""
+        try:
+            topics = rospy.get_published_topics()
+        except Exception as error:  # the master is away: try again at the next look
+            self.node.log_throttled('robots', rospy.logwarn, 'looking for robots: %s', error)
+            return
+        for topic, kind in topics:
+            robot = topic.removesuffix('/status').lstrip('/')
+            if kind != RobotStatus._type or not topic.endswith('/status') or robot in self._robots:
+                continue
+            if len(self._robots) >= MAX_ROBOTS:
+                return
+            self._robots.add(robot)
+            rospy.Subscriber(
+                topic, RobotStatus, lambda msg, r=robot: self.drvs.on_robot_status(r, msg), queue_size=1
+            )
+            rospy.Subscriber(
+                f'/{robot}/path', Path, lambda msg, r=robot: self.drvs.on_robot_path(r, msg), queue_size=1
+            )
 
     def _on_callback(self, request) -> CallbackCoordinatesResponse:
         loop = self.loop

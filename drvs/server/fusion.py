@@ -131,6 +131,7 @@ class FusionStage:
         self.settings = settings or FusionSettings()
         self._trackers: dict[str, Tracker] = {}
         self._used: dict[str, float] = {}  # algorithm -> when its tracker last took a frame or a user
+        self._arrived: dict[str, float] = {}  # algorithm -> when (clock) its tracker last took a frame
         self._rounds: dict[str, _Round] = {}
         self._watches: dict[Key, _Watch] = {}
         self._by_wire: dict[str, _Watch] = {}
@@ -268,6 +269,7 @@ class FusionStage:
         if tracker is None:
             return False
         self._used[algorithm if owner is None else owner.algorithm] = now
+        self._arrived[algorithm if owner is None else owner.algorithm] = now
         region = None if owner is None else owner.region
         result = tracker.frame(vision_system, stamp, observations, self._looked_at(vision_system, region))
         self.untracked += result.untracked
@@ -348,9 +350,8 @@ class FusionStage:
                 f'no frame from the {len(watch.serving)} vision systems serving the watch in the last period'
             )
         tracker = self._trackers.get(watch.algorithm)
-        objects = (
-            () if tracker is None else tuple(tracker.tracks(now, watch.region, since=now - watch.period))
-        )
+        at = self._reference(watch.algorithm, now)
+        objects = () if tracker is None else tuple(tracker.tracks(at, watch.region, since=at - watch.period))
         signatures = {track.track_id: _signature(track) for track in objects}
         gone = tuple(sorted(watch.reported.keys() - signatures.keys()))
         changed = signatures != watch.reported or not watch.delivered
@@ -361,7 +362,7 @@ class FusionStage:
             watch.callback_service,
             watch.algorithm,
             watch.key[1],
-            max(heard.answered.values(), default=now),
+            at,
             objects,
             status,
             message,
@@ -434,9 +435,21 @@ class FusionStage:
             del self._trackers[oldest]
             self._used.pop(oldest, None)
 
+    def _reference(self, algorithm: str, now: float) -> float:
+        """The time the tracks of ``algorithm`` are judged at: the newest frame's capture stamp while
+        frames keep arriving (within the coast time), else the clock. Frames that reach the server
+        late (a loaded host) then neither end the tracks they feed nor leave them unseen."""
+        tracker = self._trackers.get(algorithm)
+        arrived = self._arrived.get(algorithm)
+        if tracker is None or tracker.newest is None or arrived is None:
+            return now
+        if now - arrived > self.settings.tracker.coast:
+            return now
+        return tracker.newest
+
     def _expire(self, now: float) -> None:
-        for tracker in self._trackers.values():
-            tracker.expire(now)
+        for algorithm, tracker in self._trackers.items():
+            tracker.expire(self._reference(algorithm, now))
 
 
 def _outcome(heard: _Asked, missing: tuple[str, ...], asked: int, deadline: float) -> tuple[int, str]:

@@ -1,6 +1,7 @@
 """Which outlines of one camera frame belong to which track: the fusion tracker's association.
 
-A labelled outline (a tag) joins the track with its label, wherever it is; the others are
+A labelled outline (a tag) joins the track with its label, wherever it is; an outline that holds
+the predicted centroids of two tracks apart (two people in one blob) joins none; the others are
 assigned globally (Hungarian, :func:`scipy.optimize.linear_sum_assignment`) on a cost of centroid
 distance to each track's prediction and outline overlap, within a gate or an overlap; an outline
 left over that lies mostly inside a track another outline of the frame joined, close to that
@@ -17,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment  # type: ignore[import]  # scipy ships no type information
 
-from drvs.server.outlines import Shape, combine, overlap_area, union_outline
+from drvs.server.outlines import Shape, combine, contains, overlap_area, union_outline
 from drvs.server.track_motion import Motion
 
 __all__ = ['Association', 'Candidate', 'Rules', 'Seen', 'Track', 'associate']
@@ -55,6 +56,10 @@ class Track:
 
     def position(self, stamp: float) -> Point:
         return self.motion.position(stamp, moving=not self.stationary)
+
+    def size(self) -> float:
+        """Half the diagonal of the smallest of its cameras' outlines: how big the object is at most."""
+        return min(seen.shape.radius for seen in self.seen.values())
 
     def fresh(self, age: float) -> list[Seen]:
         """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
@@ -104,6 +109,7 @@ class Association:
     fresh: list[Candidate] = field(default_factory=list)  # need new tracks
     skipped: int = 0  # a label's second outline in the frame
     ended: list[Track] = field(default_factory=list)  # labelled tracks past their coast time
+    shared: list[tuple[Candidate, list[Track]]] = field(default_factory=list)  # one blob of several tracks
 
 
 def associate(
@@ -138,7 +144,11 @@ def associate(
     if not plain or not alive:
         result.fresh.extend(plain)
         return result
-    cost, inside = _costs(stamp, plain, alive, rules)
+    predicted = np.array([t.position(stamp) for t in alive])
+    plain = _single(plain, alive, predicted, result)
+    if not plain:
+        return result
+    cost, inside = _costs(stamp, plain, alive, predicted, rules)
     rows, cols = linear_sum_assignment(cost)
     joined: dict[int, Candidate] = {}  # column -> the candidate that joined the track
     for row, col in zip(rows.tolist(), cols.tolist(), strict=True):
@@ -161,15 +171,48 @@ def associate(
     return result
 
 
+def _single(
+    plain: list[Candidate], tracks: list[Track], predicted: np.ndarray, result: Association
+) -> list[Candidate]:
+    """The candidates that are no blob of several tracks; the others go to ``result.shared``.
+
+    A camera sees two people who stand close, one behind the other, as one blob: an outline that
+    holds the predicted centroids of two tracks farther apart than either's size is such a blob, and
+    its centroid (between them) is neither's position."""
+    bounds = np.array([c.shape.bounds for c in plain])
+    x, y = predicted[None, :, 0], predicted[None, :, 1]
+    in_box = (x >= bounds[:, 0:1]) & (x <= bounds[:, 2:3]) & (y >= bounds[:, 1:2]) & (y <= bounds[:, 3:4])
+    kept = []
+    for candidate, near in zip(plain, in_box, strict=True):
+        cols = np.nonzero(near)[0]
+        if len(cols) >= 2:
+            cols = cols[contains(candidate.shape.points, predicted[cols])]
+        if len(cols) >= 2 and _apart([tracks[j] for j in cols.tolist()], predicted[cols]):
+            result.shared.append((candidate, [tracks[j] for j in cols.tolist()]))
+        else:
+            kept.append(candidate)
+    return kept
+
+
+def _apart(tracks: list[Track], predicted: np.ndarray) -> bool:
+    """True if two of ``tracks`` (at ``predicted``) are farther apart than the larger one's size (the
+    half-diagonal of its smallest fresh outline): two objects, not two tracks on one."""
+    sizes = [t.size() for t in tracks]
+    for i in range(len(tracks)):
+        for j in range(i + 1, len(tracks)):
+            if math.dist(predicted[i], predicted[j]) > max(sizes[i], sizes[j]):
+                return True
+    return False
+
+
 def _costs(
-    stamp: float, plain: list[Candidate], tracks: list[Track], rules: Rules
+    stamp: float, plain: list[Candidate], tracks: list[Track], predicted: np.ndarray, rules: Rules
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cost (candidates x tracks): distance to the prediction over the gate plus one minus the
     overlap; ``_NO`` outside the gate without overlap. Also how much of each candidate lies inside
     each track. Both on bounding boxes (see :func:`_box_overlaps`), except where an outline beyond
     the gate would join a track by overlap alone: there the areas of the outlines decide."""
     centroids = np.array([c.shape.centroid for c in plain])
-    predicted = np.array([t.position(stamp) for t in tracks])
     distance = np.hypot(*(centroids[:, None, :] - predicted[None, :, :]).transpose(2, 0, 1))
     overlap, inside = _box_overlaps(stamp, plain, tracks, rules)
     for row, col in zip(*np.nonzero((distance > rules.gate) & (overlap >= rules.min_overlap)), strict=True):

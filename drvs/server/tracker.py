@@ -112,7 +112,7 @@ class FrameResult:
     """What :meth:`Tracker.frame` did with one frame's outlines."""
 
     associated: int
-    """Outlines that joined existing tracks (merged pieces included)."""
+    """Outlines that joined existing tracks (merged pieces and shared blobs included)."""
     created: int
     """Tracks started."""
     untracked: int
@@ -124,6 +124,13 @@ class FrameResult:
     finite number), or a second outline with a label this frame already had."""
     merged: int = 0
     """Of ``associated``: second pieces of one object (see ``TrackerSettings.merge_overlap``)."""
+    shared: int = 0
+    """Of ``associated``: outlines of several tracked objects at once (two people in one blob); they
+    neither move those tracks nor start one, and count as no miss."""
+    stale: bool = False
+    """The frame was captured more than the coast time before the newest frame fused: nothing
+    fused, every outline counted in ``skipped`` (a camera showing an old frame, or a clock far
+    behind the others')."""
 
 
 @dataclass(frozen=True)
@@ -160,6 +167,7 @@ class Tracker:
         self._by_label: dict[str, Track] = {}
         self._next_id = 1
         self._gone: list[int] = []  # ended in frame() (a label seen again, a full table), not yet reported
+        self._newest: float | None = None  # the newest frame stamp fused
         self._rules = Rules(
             settings.gate,
             settings.coast,
@@ -169,6 +177,11 @@ class Tracker:
             settings.outline_age,
         )
         self._pose = PoseCheck(settings.pose_tolerance, settings.pose_min_objects, settings.pose_window)
+
+    @property
+    def newest(self) -> float | None:
+        """The capture stamp of the newest frame fused (None before the first)."""
+        return self._newest
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -188,6 +201,9 @@ class Tracker:
         observations = [] if observations is None else list(observations)
         if not isinstance(stamp, int | float) or not math.isfinite(stamp):
             return FrameResult(0, 0, 0, False, skipped=len(observations))
+        if self._newest is not None and stamp < self._newest - self.settings.coast:
+            return FrameResult(0, 0, 0, False, skipped=len(observations), stale=True)
+        self._newest = stamp if self._newest is None else max(self._newest, stamp)
         candidates, skipped = self._candidates(observations)
         association = associate(stamp, candidates, list(self._tracks.values()), self._by_label, self._rules)
         for track in association.ended:
@@ -210,9 +226,19 @@ class Tracker:
             self._create(vision_system, stamp, candidate)
             created += 1
         if field_of_view is not None:
-            self._misses(stamp, field_of_view, {id(track) for _, track in pairs})
+            covered = {id(track) for _, tracks in association.shared for track in tracks}
+            self._misses(stamp, field_of_view, {id(track) for _, track in pairs} | covered)
         merged = sum(len(c.pieces) - 1 for c, _ in pairs if c.pieces)
-        return FrameResult(len(pairs) + merged, created, untracked, False, skipped=skipped, merged=merged)
+        shared = len(association.shared)
+        return FrameResult(
+            len(pairs) + merged + shared,
+            created,
+            untracked,
+            False,
+            skipped=skipped,
+            merged=merged,
+            shared=shared,
+        )
 
     def _candidates(self, observations: Sequence[Observation]) -> tuple[list[Candidate], int]:
         candidates: list[Candidate] = []

@@ -16,7 +16,12 @@ from bench.common import Context, Section, percentile, spread, target
 from drvs.testing.harness import REPO
 
 TARGETS = {
-    'wire': ['callback_bytes_one_object', 'image_to_drvs_bytes_10x50_photo', 'robot_cpu_image_over_drvs'],
+    'wire': [
+        'callback_bytes_one_object',
+        'image_to_drvs_bytes_10x50_photo',
+        'robot_cpu_image_over_drvs',
+        'robot_cpu_image_over_drvs_fused',
+    ],
     'latency': ['ack_over_plain_call', 'first_callback_over_three_calls'],
     'throughput': ['forwarded_rate_over_raw_rate_fanout1', 'forwarded_rate_over_raw_rate_fanout5'],
     'registry': ['match_1m_p50_us', 'match_1m_moving_over_static', 'register_1m_us'],
@@ -24,6 +29,12 @@ TARGETS = {
     'planner': ['dstar_repair_speedup'],
     'fleet': ['watch_message_ratio'],
     'tracking': ['tracking_duplicates', 'tracking_idf1', 'tracking_switches_per_100_track_s'],
+    'gateway': [
+        'gateway_first_callback_over_ros',
+        'gateway_sse_delivery_p50_ms',
+        'gateway_listener_kib',
+        'gateway_tokens_rate_over_open',
+    ],
 }
 
 

@@ -18,6 +18,7 @@ from drvs.testing.harness import REPO
 SUB_PACKAGES = {
     'drvs.algorithms',
     'drvs.common',
+    'drvs.gateway',
     'drvs.msg',
     'drvs.robot',
     'drvs.ros',
@@ -98,5 +99,9 @@ def test_pip_install_from_a_fresh_clone_installs_every_sub_package_and_the_nodes
     tracked = run(['git', 'ls-files', 'drvs/*.py'], cwd=project).split()
     missing = [name for name in tracked if not (site / name).is_file()]
     assert not missing, 'modules pip install . left out:\n' + '\n'.join(missing)
+    pages = run(['git', 'ls-files', 'drvs/gateway/static/*'], cwd=project).split()  # package_data
+    assert pages and not [
+        name for name in pages if not (site / name).is_file()
+    ], 'the floor-plan page is missing'
     for generated in ('drvs/msg/_RobotStatus.py', 'drvs/srv/_DetectObjectBoundary.py'):
         assert (site / generated).is_file()

@@ -32,6 +32,8 @@ OPTIONS = [
     '--record',
     '--hosts',
     '--robot-link',
+    '--gateway',
+    '--gateway-bind',
     '--help',
 ]
 
@@ -115,8 +117,17 @@ def test_a_usage_error_exits_2_with_the_usage_on_stderr(argv, first_line):
             ['--hosts', '--external-master'],
             '--hosts runs its own master on host master: not with --external-master',
         ),
+        (['--gateway-bind', '127.0.0.1:8080'], '--gateway-bind needs --gateway'),
+        (['--gateway', '--gateway-bind', 'anywhere'], '--gateway-bind needs HOST:PORT, got anywhere'),
     ],
-    ids=['requests', 'timeout', 'robot-link without hosts', 'hosts with an external master'],
+    ids=[
+        'requests',
+        'timeout',
+        'robot-link without hosts',
+        'hosts with an external master',
+        'gateway-bind without gateway',
+        'gateway-bind without a port',
+    ],
 )
 def test_a_bad_option_value_is_one_line_and_exit_2(tmp_path, options, message):
     result = run([SCRIPT, WORLD, *options, '--out', str(tmp_path)])

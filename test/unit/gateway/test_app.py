@@ -79,6 +79,9 @@ class FakeDrvs:
     def objects(self):
         return None
 
+    def robots(self):
+        return {}
+
     def diagnostics(self):
         return [
             {

@@ -168,3 +168,20 @@ def test_a_flood_of_outlines_is_bounded_and_said_in_the_answer(clock):
     (delivery,) = stage.due()
     assert delivery.status == OK and len(delivery.objects) == 5
     assert stage.untracked == 35 and '35 outlines left untracked' in delivery.message
+
+
+def test_frames_that_reach_the_server_late_keep_their_tracks(clock):
+    """A loaded host: every frame reaches the server 5 s after capture. The tracks are judged at the
+    newest frame's stamp while frames keep coming, so they are neither ended nor empty; once no
+    frame has come for the coast time, the clock judges them and they end."""
+    stage = make_stage(clock, coast=1.0)
+    key = ('/robot', 'late')
+    wire = stage.set_watch(key, GREEN, REGION, '/robot/cb', 0.5, changes_only=False)
+    stage.keep_watches({key: [CAM1]})
+    for step in range(8):
+        clock.now = 105.0 + 0.5 * step
+        stage.callback(wire, CAM1, clock.now - 5.0, GREEN, [square(2.0, 2.0)])
+        for delivery in stage.due():
+            assert len(delivery.objects) == 1 and delivery.stamp == pytest.approx(clock.now - 5.0)
+    clock.now += 1.5  # the camera went quiet
+    assert [len(d.objects) for d in stage.due()] == [0]

@@ -96,6 +96,33 @@ def test_two_people_walking_apart_are_not_merged():
     assert (result.merged, len(tracker)) == (0, 2)
 
 
+def test_a_blob_of_two_people_passing_close_moves_neither_track():
+    # Two people pass 0.6 m apart; cameras a and b see each, camera c sees them one behind the
+    # other as one blob while they are within 1 m: it neither pulls them together nor starts a ghost.
+    tracker = Tracker()
+    shared = 0
+    for t in ticks(4.0):
+        a, b = (t, 0.0), (4.0 - t, 0.6)  # at 1 m/s each, closest at t = 2 s
+        both = [seen(*a, size=0.3), seen(*b, size=0.3)]
+        tracker.frame('a', t, both)
+        tracker.frame('b', t + 0.03, [seen(a[0] + 0.03, a[1], size=0.3), seen(b[0] - 0.03, b[1], size=0.3)])
+        c = t + 0.06
+        a, b = (c, 0.0), (4.0 - c, 0.6)
+        if math.dist(a, b) < 1.0:
+            blob = (
+                (min(a[0], b[0]) - 0.15, -0.15),
+                (max(a[0], b[0]) + 0.15, -0.15),
+                (max(a[0], b[0]) + 0.15, 0.75),
+            )
+            shared += tracker.frame('c', c, [Observation(blob + ((min(a[0], b[0]) - 0.15, 0.75),))]).shared
+        else:
+            tracker.frame('c', c, [seen(*a, size=0.3), seen(*b, size=0.3)])
+        if t >= 0.5:
+            assert ids_near(tracker, c, *a, within=0.05) == [1], t
+            assert ids_near(tracker, c, *b, within=0.05) == [2], t
+    assert shared > 0 and len(tracker) == 2
+
+
 def test_a_tags_label_wins_over_proximity_and_two_tags_never_merge():
     tracker = Tracker()
     tracker.frame('cam', 0.0, [seen(0.0, 0.0, label='tag:1'), seen(3.0, 0.0, label='tag:2')])
@@ -353,11 +380,20 @@ def test_a_frame_older_than_the_reorder_window_joins_without_moving_the_track():
     for t in ticks(3.0):
         tracker.frame('a', t, [seen(1.0, 1.0)])
     before = tracker.tracks(2.9)[0]
-    result = tracker.frame('b', 0.5, [seen(1.3, 1.0)])  # 2.4 s late
+    result = tracker.frame('b', 1.2, [seen(1.3, 1.0)])  # 1.7 s late: past the reorder window
     after = tracker.tracks(2.9)[0]
     assert (result.associated, after.position, after.last_seen) == (1, before.position, 2.9)
-    assert after.seen_by == ('a',)  # since the coast time before 2.9
+    assert tracker.tracks(2.9, since=2.0)[0].seen_by == ('a',)
     assert tracker.tracks(2.9, since=0.0)[0].seen_by == ('a', 'b')
+
+
+def test_a_frame_older_than_the_coast_time_is_stale_and_fuses_nothing():
+    tracker = Tracker()
+    for t in ticks(3.0):
+        tracker.frame('a', t, [seen(1.0, 1.0)])
+    result = tracker.frame('b', 0.5, [seen(3.0, 3.0), seen(1.3, 1.0)])  # 2.4 s late: an old frame
+    assert (result.stale, result.skipped, result.created, len(tracker)) == (True, 2, 0, 1)
+    assert tracker.newest == pytest.approx(2.9)
 
 
 def test_settings_are_checked():
