@@ -60,6 +60,18 @@ class GatewaySettings(Settings):
     )
     ros_calls: int = param(4, 'calls to the DRVS server in flight at once', check=at_least(1))
     max_body: int = param(16384, 'largest request body; beyond: `413`', unit='bytes', check=at_least(64))
+    request_timeout: float = param(
+        10.0,
+        "a request's head, and then its body, must arrive within this (a kept-alive connection's next "
+        'head: from the previous answer); beyond, the connection is closed (the body: `408`)',
+        unit='s',
+        check=POSITIVE,
+    )
+    max_connections_per_address: int = param(
+        256,
+        'connections one client address holds open at once, on each endpoint; beyond, a new one is closed',
+        check=at_least(1),
+    )
     max_wait: float = param(30.0, 'the longest `wait` of `POST /v1/detect`', unit='s', check=POSITIVE)
     max_requests_per_s: float = param(
         20.0,

@@ -32,6 +32,7 @@ from drvs.gateway.app import Gateway
 from drvs.gateway.backend import Ack, NoServer
 from drvs.gateway.body import DetectBody, WatchBody
 from drvs.gateway.bridge import Rosbridge
+from drvs.gateway.guard import GuardedRunner
 from drvs.gateway.live import MAX_ROBOTS
 from drvs.gateway.params import GatewaySettings, is_loopback, split_bind
 from drvs.gateway.tokens import Tokens, load_tokens
@@ -384,8 +385,15 @@ class GatewayNode:
 
     async def _run(self) -> None:
         self._stop = asyncio.Event()
-        runner = web.AppRunner(self.gateway.application(), handle_signals=False, access_log=None)
-        bridge = web.AppRunner(self.bridge.application(), handle_signals=False, access_log=None)
+        guard = {
+            'handle_signals': False,
+            'access_log': None,
+            'head_timeout': self.settings.request_timeout,
+            'keepalive_timeout': self.settings.request_timeout,
+            'max_per_address': self.settings.max_connections_per_address,
+        }
+        runner = GuardedRunner(self.gateway.application(), **guard)
+        bridge = GuardedRunner(self.bridge.application(), **guard)
         await runner.setup()
         await bridge.setup()
         try:

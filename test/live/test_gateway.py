@@ -1,11 +1,13 @@
 """drvs_gateway on a live graph: drvs_server, a fake vision system that answers, and the gateway,
 asked over HTTP as any client would (the standard library only)."""
 
+import contextlib
 import http.client
 import json
 import os
 import random
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +19,7 @@ import pytest
 from drvs.gateway.tokens import add_token
 from drvs.testing import free_port, read_json_lines, wait_for
 from drvs.testing.doc_examples import commands, shell_blocks
+from drvs.testing.footprint import MIB, established, rss
 from drvs.testing.harness import REPO
 from drvs.testing.hostile_bodies import random_body
 
@@ -113,6 +116,7 @@ def site(module_ros, tmp_path_factory):
                 'tokens': tokens,
                 'max_requests_per_s': 1000,
                 'burst': 1000,
+                'request_timeout': 5.0,
             },
         )
         client = Client(url, full)
@@ -273,7 +277,18 @@ def test_ten_thousand_random_bodies(site):
 
 
 def hostile(site, count):
-    rng = random.Random(27)
+    """``count`` random bodies after a warm-up of a tenth as many: every answer a clean 2xx/4xx,
+    and the gateway's memory and connections back near where the warm-up left them."""
+    pid, port = site['gateway'].pid, int(site['url'].rpartition(':')[2])
+    _random_bodies(site, count // 10, seed=count)
+    before = rss(pid)
+    _random_bodies(site, count, seed=27)
+    wait_for(lambda: established(pid, port) == 0, 10, 'every connection of the run closed')
+    assert rss(pid) - before < 20 * MIB, f'{(rss(pid) - before) / MIB:.1f} MiB more'
+
+
+def _random_bodies(site, count, seed):
+    rng = random.Random(seed)
     client = site['client']
     statuses = {}
     for _ in range(count):
@@ -288,8 +303,56 @@ def hostile(site, count):
     assert status == 200 and health['gateway']['errors'] == 0 and health['gateway']['watches'] == 0
     assert site['gateway'].running()
 
-    def drvs_watches():  # the server's own count, on /diagnostics once a second
+    def no_drvs_watches():  # the server's own count, on /diagnostics once a second
         server = client('GET', '/v1/health')[2]['server']
-        return int(server['values']['watches'])
+        return server is not None and int(server['values']['watches']) == 0
 
-    wait_for(lambda: drvs_watches() == 0, 20, 'every DRVS watch withdrawn')
+    wait_for(no_drvs_watches, 20, 'every DRVS watch withdrawn')
+
+
+SLOW_SENDERS = 16
+
+
+def test_slow_senders_and_a_reader_that_never_reads_delay_nobody(site):
+    """A slowloris (a request's head one byte every 0.5 s on many connections) and an event stream
+    nobody reads: a normal client's requests are answered while they are open, and the gateway cuts
+    the slow senders off after ~request_timeout (5 s here)."""
+    client, url, token = site['client'], site['url'], site['full']
+    host, port = url.removeprefix('http://').split(':')
+    pid = site['gateway'].pid
+    status, _, watch = client('POST', '/v1/watches', {'algorithm': COLOUR, 'region': REGION, 'period': 0.1})
+    assert status == 201, watch
+    mute = socket.create_connection((host, int(port)), timeout=20)  # reads nothing, ever
+    mute.sendall(
+        f'GET {watch["events"]} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n\r\n'.encode()
+    )
+    head = b'POST /v1/detect HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n'
+    slow = [socket.create_connection((host, int(port)), timeout=20) for _ in range(SLOW_SENDERS)]
+    try:
+        sent = 0
+
+        def trickle():
+            """One more byte on each slow connection; how many the gateway still holds (and the mute)."""
+            nonlocal sent
+            for each in slow:
+                with contextlib.suppress(OSError):  # cut off
+                    each.sendall(head[sent : sent + 1])
+            sent += 1
+            return established(pid, int(port))
+
+        wait_for(lambda: trickle() == SLOW_SENDERS + 1, 10, 'the slow ones and the mute one connected')
+        status, _, answer = client('POST', '/v1/detect', {'algorithm': COLOUR, 'region': REGION, 'wait': 5})
+        assert (status, len(answer['callbacks'])) == (200, 1), answer
+        assert client('GET', '/v1/health')[0] == 200
+        assert established(pid, int(port)) == SLOW_SENDERS + 1, 'answered only once the slow ones were gone'
+
+        def cut_off():
+            time.sleep(0.5)  # the slowloris's pace, not a wait for the gateway
+            return trickle() == 1  # the mute one is not cut off: it sent its request
+
+        wait_for(cut_off, 30, 'the slow senders cut off')
+        assert site['gateway'].running()
+    finally:
+        for each in [*slow, mute]:
+            each.close()
+        client('DELETE', f'/v1/watches/{watch["id"]}')
