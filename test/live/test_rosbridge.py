@@ -17,6 +17,7 @@ import pytest
 
 from drvs.gateway.tokens import add_token
 from drvs.testing import free_port, wait_for
+from drvs.testing.footprint import MIB, established, rss
 from drvs.testing.harness import REPO
 from drvs.testing.hostile_frames import random_frame
 
@@ -232,8 +233,12 @@ def test_rights_per_token_over_the_wire(site):
 
 
 def _random_frames(site, count):
-    async def main():
-        rng = random.Random(count)
+    """``count`` random frames after a warm-up of a tenth as many; then the gateway's memory within
+    20 MiB of where the warm-up left it, its rosbridge connections back to none, and still serving."""
+    pid, port = site['gateway'].pid, int(site['address'].rpartition(':')[2])
+
+    async def main(count, seed):
+        rng = random.Random(seed)
         async with connect(site['url'], site['full']) as socket:
             reader = asyncio.get_running_loop().create_task(_drain(socket))
             for _ in range(count):
@@ -241,7 +246,12 @@ def _random_frames(site, count):
             await socket.send_json({'op': 'set_level', 'level': 'none'})
             reader.cancel()
 
-    asyncio.run(asyncio.wait_for(main(), 120))
+    asyncio.run(asyncio.wait_for(main(count // 10, -count), 120))
+    wait_for(lambda: established(pid, port) == 0, 10, 'the warm-up connection closed')
+    before = rss(pid)
+    asyncio.run(asyncio.wait_for(main(count, count), 120))
+    wait_for(lambda: established(pid, port) == 0, 10, 'the connection closed')
+    assert rss(pid) - before < 20 * MIB, f'{(rss(pid) - before) / MIB:.1f} MiB more'
     # Still serving: the roslibpy client runs the whole flow.
     test_the_roslibpy_example_asks_hosts_its_callback_and_gets_the_outlines(site)
     assert site['gateway'].running()
