@@ -91,7 +91,11 @@ def site(module_ros, tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv('ROS_MASTER_URI', module_ros.master.uri)
         patch.setenv('ROS_HOSTNAME', '127.0.0.1')
-        server = module_ros.start_node('nodes/drvs_server', name='drvs', params={'fused_deadline': 1.0})
+        server = module_ros.start_node(
+            'nodes/drvs_server',
+            name='drvs',
+            params={'fused_deadline': 1.0, 'max_pending': 1000, 'max_pending_per_vision_system': 1000},
+        )
         module_ros.wait_for_service('/drvs/detect_object_boundary', node=server)
         module_ros.start_node(
             'test/nodes/fake_vision_system.py',
