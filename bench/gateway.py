@@ -7,8 +7,9 @@ back) and two ``drvs_gateway`` nodes, one with a tokens file and one without.
 
 - Request → first callback: rounds of ``POST /v1/detect`` (``wait`` 5 s; the answer comes as soon
   as the one vision system asked has called back) over one persistent HTTP connection, against
-  the same request made by a ROS robot (``bench/nodes/latency_client.py``) in the same run: the
-  ratio is what the gateway adds (an HTTP round trip, JSON, its own ROS call and callback).
+  the same request made by a ROS robot (``bench/nodes/latency_client.py``) in the same run, as
+  many rounds, in alternating blocks (:data:`BLOCKS`) so both meet the same load: the ratio is what
+  the gateway adds (an HTTP round trip, JSON, its own ROS call and callback).
 - SSE delivery: a watch (period 0.1 s) read as an event stream; each callback event's delay from
   the fake's stamp (the moment it called the gateway back) to its arrival at the client.
 - 200 listeners: one watch read by 200 event streams at once (``~max_listeners`` raised to 200);
@@ -78,6 +79,7 @@ def start_graph(ros: RosHarness, ctx: Context) -> tuple[dict, str]:
             name=f'gateway_{name}',
             params={
                 'bind': urls[name].removeprefix('http://'),
+                'rosbridge_bind': 'none',  # two gateways at once: not both on 9090
                 'max_listeners': LISTENERS,
                 'max_wait': 10.0,
                 **UNLIMITED,
@@ -134,12 +136,12 @@ def detect_rounds(url: str, token: str, rounds: int) -> list[float]:
     return times[3:]
 
 
-def ros_rounds(ros: RosHarness, ctx: Context, rounds: int) -> list[float]:
+def ros_rounds(ros: RosHarness, ctx: Context, rounds: int, block: int = 0) -> list[float]:
     """The same request over ROS: request → first callback per round (bench/nodes/latency_client.py)."""
-    out = ctx.work_dir / 'gateway-ros.jsonl'
+    out = ctx.work_dir / f'gateway-ros-{block}.jsonl'
     client = ros.start_node(
         NODES / 'latency_client.py',
-        name='gateway_ros_client',
+        name=f'gateway_ros_client_{block}',
         params={
             'out': out,
             'plain': '/echo/detect_object_boundary',
@@ -264,6 +266,27 @@ async def request_rate(url: str, token: str | None, seconds: float) -> float:
         return done / (time.perf_counter() - started)
 
 
+BLOCKS = 5
+"""The ROS and HTTP rounds alternate in this many blocks, so both meet the same load on the machine."""
+
+
+def interleaved(
+    ros: RosHarness, ctx: Context, url: str, token: str, rounds: int
+) -> tuple[list[float], list[float]]:
+    """``rounds`` requests over ROS and as many through the gateway, in :data:`BLOCKS` alternating
+    blocks (ROS first in one block, HTTP first in the next)."""
+    over_ros: list[float] = []
+    over_http: list[float] = []
+    for block in range(BLOCKS):
+        size = rounds // BLOCKS + (block < rounds % BLOCKS)
+        if block % 2:
+            over_http.extend(detect_rounds(url, token, size))
+        over_ros.extend(ros_rounds(ros, ctx, size, block))
+        if not block % 2:
+            over_http.extend(detect_rounds(url, token, size))
+    return over_ros, over_http
+
+
 def run(ctx: Context) -> Section:
     rounds = ctx.pick(10, 50, 200)
     seconds = ctx.pick(1.0, 3.0, 5.0)
@@ -273,10 +296,8 @@ def run(ctx: Context) -> Section:
         gateways, token = start_graph(ros, ctx)
         url, node = gateways['tokens']
         open_url, _ = gateways['open']
-        ctx.progress(f'{rounds} requests over ROS')
-        over_ros = ros_rounds(ros, ctx, rounds)
-        ctx.progress(f'{rounds} requests through the gateway')
-        over_http = detect_rounds(url, token, rounds)
+        ctx.progress(f'{rounds} requests over ROS and {rounds} through the gateway, in {BLOCKS} blocks')
+        over_ros, over_http = interleaved(ros, ctx, url, token, rounds)
         ctx.progress('SSE delivery')
         delivery = asyncio.run(sse_delivery(open_url, ctx.pick(10, 50, 200)))
         ctx.progress(f'{listeners} event streams held')

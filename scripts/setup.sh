@@ -31,7 +31,10 @@ APT_PACKAGES=(
   # The floor-plan page's test in a real browser (test/scenarios/test_gateway_page.py): always
   # installed, since `make test` (and so CI) runs it; about 300 MB.
   chromium chromium-driver python3-selenium
+  nodejs  # the roslibjs example of drvs_gateway's rosbridge endpoint, run by test/live/test_rosbridge.py
 )
+# npm: Debian's, unless a Node.js that brings its own is installed (NodeSource's conflicts with Debian's npm).
+command -v npm >/dev/null 2>&1 || APT_PACKAGES+=(npm)
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).
 for arg in "$@"; do
@@ -42,7 +45,8 @@ for arg in "$@"; do
 done
 # The test tools and the PyPI wheels, pinned to what the project was checked with (motmetrics:
 # the tracking metrics of drvs/sim/tracking.py; 1.4.0 runs on Debian's numpy 1.24, scipy 1.10, pandas 1.5).
-PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4 motmetrics==1.4.0)
+# roslibpy: the rosbridge client of drvs_gateway's Python example (test/live/test_rosbridge.py).
+PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4 motmetrics==1.4.0 roslibpy==2.1.0)
 
 say() { printf 'setup: %s\n' "$*"; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
@@ -99,5 +103,13 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$digest" ] \
   say "installing the drvs package (generates drvs.msg and drvs.srv)"
   "$py" -m pip install -q --disable-pip-version-check --no-build-isolation --no-deps -e .
   echo "$digest" > "$stamp"
+fi
+
+# roslibjs for the rosbridge example (examples/roslibjs, its package-lock.json), when the lock file changed.
+js="$here/examples/roslibjs"
+js_digest=$(sha256sum "$js/package-lock.json" | cut -d' ' -f1)
+if [ "$(cat "$js/node_modules/.drvs-stamp" 2>/dev/null)" != "$js_digest" ]; then
+  say "installing roslibjs from npm into examples/roslibjs/node_modules"
+  (cd "$js" && npm ci --no-audit --no-fund --loglevel=error) && echo "$js_digest" > "$js/node_modules/.drvs-stamp"
 fi
 say "ready ($venv)"

@@ -284,7 +284,11 @@ class Gateway:
             raise web.HTTPRequestEntityTooLarge(
                 max_size=self.settings.max_body, actual_size=request.content_length
             )
-        return json_body(await request.read())
+        try:
+            data = await asyncio.wait_for(request.read(), self.settings.request_timeout)
+        except TimeoutError:
+            raise web.HTTPRequestTimeout(text='the body did not arrive within ~request_timeout') from None
+        return json_body(data)
 
     async def detect(self, request: web.Request, grant: Grant) -> web.StreamResponse:
         body: DetectBody = detect_body(await self._body(request), self.settings.max_wait)

@@ -60,6 +60,18 @@ class GatewaySettings(Settings):
     )
     ros_calls: int = param(4, 'calls to the DRVS server in flight at once', check=at_least(1))
     max_body: int = param(16384, 'largest request body; beyond: `413`', unit='bytes', check=at_least(64))
+    request_timeout: float = param(
+        10.0,
+        "a request's head, and then its body, must arrive within this (a kept-alive connection's next "
+        'head: from the previous answer); beyond, the connection is closed (the body: `408`)',
+        unit='s',
+        check=POSITIVE,
+    )
+    max_connections_per_address: int = param(
+        256,
+        'connections one client address holds open at once, on each endpoint; beyond, a new one is closed',
+        check=at_least(1),
+    )
     max_wait: float = param(30.0, 'the longest `wait` of `POST /v1/detect`', unit='s', check=POSITIVE)
     max_requests_per_s: float = param(
         20.0,
@@ -87,7 +99,45 @@ class GatewaySettings(Settings):
         check=POSITIVE,
     )
     keep_alive: float = param(15.0, 'a comment on an idle event stream this often', unit='s', check=POSITIVE)
+    rosbridge_bind: str = param(
+        '127.0.0.1:9090',
+        'HOST:PORT of the rosbridge v2 WebSocket (at `/`); `none`: none; beyond loopback it needs `~tokens`',
+    )
+    rosbridge_call_timeout: float = param(
+        1.5,
+        "limit on DRVS's call to a service a rosbridge client hosts (below a vision system's "
+        '`~callback_timeout`, 2 s)',
+        unit='s',
+        check=POSITIVE,
+    )
+    rosbridge_queue: int = param(
+        256,
+        'messages waiting for one slow rosbridge client; beyond, the oldest are dropped',
+        check=at_least(1),
+    )
+    rosbridge_heartbeat: float = param(
+        10.0,
+        'a WebSocket ping this often; a client that answers none within half of it is closed',
+        unit='s',
+        check=POSITIVE,
+    )
+    rosbridge_max_frame: int = param(
+        65536,
+        'largest rosbridge frame; beyond, the connection is closed (1009)',
+        unit='bytes',
+        check=at_least(1024),
+    )
+    rosbridge_max_clients: int = param(
+        8, 'rosbridge connections per token (per client address without tokens)', check=at_least(1)
+    )
 
     def __post_init__(self) -> None:
         super().__post_init__()
         split_bind('bind', self.bind)
+        if self.rosbridge_on:
+            split_bind('rosbridge_bind', self.rosbridge_bind)
+
+    @property
+    def rosbridge_on(self) -> bool:
+        """Whether the rosbridge endpoint listens (``~rosbridge_bind`` not ``none``)."""
+        return self.rosbridge_bind not in ('', 'none')

@@ -4,9 +4,11 @@ thread and event loop, beside rospy, as a ROS client of DRVS like any robot.
 It hosts a CallbackCoordinates service for every request and watch it sends, calls the server's
 DetectObjectBoundary and WatchObjectBoundary with a deadline each
 (:class:`drvs.ros.service_client.ServiceClient`), and keeps the newest ``/drvs/registry``,
-``/drvs/objects`` and ``/diagnostics`` for the read routes. The contract: docs/gateway.md; the
-parameters: docs/nodes/drvs_gateway.md. For the floor-plan page it also follows every robot it
-finds on the master (a publisher of ``/<robot>/status``, drvs/RobotStatus) with its ``/<robot>/path``.
+``/drvs/objects`` and ``/diagnostics`` for the read routes. For the floor-plan page it also follows
+every robot it finds on the master (a publisher of ``/<robot>/status``, drvs/RobotStatus) with its
+``/<robot>/path``. Beside it, on ``~rosbridge_bind``, the rosbridge endpoint
+(:mod:`drvs.gateway.bridge` with :mod:`drvs.ros.gateway_rosbridge`). The contract: docs/gateway.md;
+the parameters: docs/nodes/drvs_gateway.md.
 """
 
 from __future__ import annotations
@@ -29,11 +31,14 @@ from drvs.common.status import name as status_name
 from drvs.gateway.app import Gateway
 from drvs.gateway.backend import Ack, NoServer
 from drvs.gateway.body import DetectBody, WatchBody
+from drvs.gateway.bridge import Rosbridge
+from drvs.gateway.guard import GuardedRunner
 from drvs.gateway.live import MAX_ROBOTS
 from drvs.gateway.params import GatewaySettings, is_loopback, split_bind
 from drvs.gateway.tokens import Tokens, load_tokens
 from drvs.msg import BoundingBox, Registry, RobotStatus, TrackedObjects
 from drvs.ros.conversions import polygon_to_points
+from drvs.ros.gateway_rosbridge import RosBridgeBackend
 from drvs.ros.messages import registry_to_dict, robot_status_to_dict
 from drvs.ros.node import NodeScaffold
 from drvs.ros.service_client import ServiceCallError, ServiceClient
@@ -106,17 +111,19 @@ def callback_to_dict(request) -> dict[str, Any]:
     return data
 
 
-def bind_socket(settings: GatewaySettings, tokens: Tokens | None) -> socket.socket:
-    """The listening socket of ``~bind``, bound now, so that a port in use or a non-loopback
-    address without ``~tokens`` stops the node with one message (exit 2).
+def bind_socket(settings: GatewaySettings, tokens: Tokens | None, param: str = 'bind') -> socket.socket:
+    """The listening socket of ``~bind`` (or the parameter ``param``: ``rosbridge_bind``), bound now,
+    so that a port in use or a non-loopback address without ``~tokens`` stops the node with one
+    message (exit 2).
 
-    :raises ParamError: ``~bind`` not loopback without ``~tokens``.
+    :raises ParamError: the address not loopback without ``~tokens``.
     :raises OSError: the address cannot be bound.
     """
-    host, port = split_bind('bind', settings.bind)
+    address = getattr(settings, param)
+    host, port = split_bind(param, address)
     if tokens is None and not is_loopback(host):
         raise ParamError(
-            'bind',
+            param,
             f'{host} is not a loopback address, and without ~tokens anyone who reaches it could use DRVS: '
             'give a tokens file (drvs_token add NAME --file FILE, then _tokens:=FILE) or bind 127.0.0.1',
         )
@@ -128,7 +135,7 @@ def bind_socket(settings: GatewaySettings, tokens: Tokens | None) -> socket.sock
         sock.listen(128)
     except OSError as error:
         sock.close()
-        raise OSError(error.errno, f'~bind {settings.bind}: {error.strerror}') from None
+        raise OSError(error.errno, f'~{param} {address}: {error.strerror}') from None
     sock.setblocking(False)
     return sock
 
@@ -285,6 +292,17 @@ class GatewayNode:
         self.node = NodeScaffold(None)
         self.drvs = RosDrvs(settings, f'{rospy.get_name()}/callback_coordinates')
         self.gateway = Gateway(self.drvs, settings, self.tokens)
+        self.bridge_sock = (
+            bind_socket(settings, self.tokens, 'rosbridge_bind') if settings.rosbridge_on else None
+        )
+        self.bridge_backend = RosBridgeBackend(settings)
+        self.bridge = Rosbridge(
+            self.bridge_backend,
+            settings,
+            self.tokens,
+            self.gateway.limiter,
+            graph_prefix=f'{rospy.get_name()}/rosbridge',
+        )
         self.loop: asyncio.AbstractEventLoop | None = None
         self.ready = threading.Event()
         self._stop: asyncio.Event | None = None
@@ -294,6 +312,14 @@ class GatewayNode:
     def url(self) -> str:
         host, port = self.sock.getsockname()[:2]
         return f'http://[{host}]:{port}' if ':' in host else f'http://{host}:{port}'
+
+    @property
+    def rosbridge_url(self) -> str:
+        """``ws://HOST:PORT`` of the rosbridge endpoint; empty without one."""
+        if self.bridge_sock is None:
+            return ''
+        host, port = self.bridge_sock.getsockname()[:2]
+        return f'ws://[{host}]:{port}' if ':' in host else f'ws://{host}:{port}'
 
     def start(self) -> None:
         self.node.start()
@@ -309,10 +335,12 @@ class GatewayNode:
         self._follow_robots()
         self.node.every(ROBOT_LOOKUP, self._follow_robots, 'robots')
         rospy.set_param('~url', self.url)
+        rospy.set_param('~rosbridge_url', self.rosbridge_url)
         rospy.loginfo(
-            '%s: listening on %s (%s)',
+            '%s: listening on %s%s (%s)',
             rospy.get_name(),
             self.url,
+            f' and {self.rosbridge_url} (rosbridge)' if self.rosbridge_url else '',
             f'{len(self.tokens)} token(s)' if self.tokens is not None else 'no tokens: loopback only',
         )
 
@@ -357,13 +385,25 @@ class GatewayNode:
 
     async def _run(self) -> None:
         self._stop = asyncio.Event()
-        runner = web.AppRunner(self.gateway.application(), handle_signals=False, access_log=None)
+        guard = {
+            'handle_signals': False,
+            'access_log': None,
+            'head_timeout': self.settings.request_timeout,
+            'keepalive_timeout': self.settings.request_timeout,
+            'max_per_address': self.settings.max_connections_per_address,
+        }
+        runner = GuardedRunner(self.gateway.application(), **guard)
+        bridge = GuardedRunner(self.bridge.application(), **guard)
         await runner.setup()
+        await bridge.setup()
         try:
             await web.SockSite(runner, self.sock, shutdown_timeout=1.0).start()
+            if self.bridge_sock is not None:
+                await web.SockSite(bridge, self.bridge_sock, shutdown_timeout=1.0).start()
             self.ready.set()
             await self._stop.wait()
         finally:
+            await bridge.cleanup()
             await runner.cleanup()
 
     def stop(self) -> None:
@@ -378,3 +418,4 @@ class GatewayNode:
         if self._http is not None and self._http is not threading.current_thread():
             self._http.join(STOP_TIMEOUT)
         self.drvs.close()
+        self.bridge_backend.close()

@@ -3,6 +3,7 @@ one field, sometimes cut short or not JSON at all (docs/gateway.md, "A client ca
 
 from __future__ import annotations
 
+import copy
 import json
 import random
 
@@ -40,9 +41,9 @@ def random_body(rng: random.Random, path: str, region: dict | None = None) -> by
             ['algorithm', 'region', 'wait', 'fused', 'period', 'zzz', 'region.min_x', 'region.max_y']
         )
         if key.startswith('region.') and isinstance(body.get('region'), dict):
-            body['region'][key.split('.')[1]] = rng.choice(VALUES)
+            body['region'][key.split('.')[1]] = copy.deepcopy(rng.choice(VALUES))
         else:
-            body[key] = rng.choice(VALUES)
+            body[key] = copy.deepcopy(rng.choice(VALUES))  # a fresh {} or []: never filled in place
     text = json.dumps(body)
     if rng.random() < 0.1:
         text = text[: rng.randrange(len(text))]

@@ -1,11 +1,13 @@
 """drvs_gateway on a live graph: drvs_server, a fake vision system that answers, and the gateway,
 asked over HTTP as any client would (the standard library only)."""
 
+import contextlib
 import http.client
 import json
 import os
 import random
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +19,7 @@ import pytest
 from drvs.gateway.tokens import add_token
 from drvs.testing import free_port, read_json_lines, wait_for
 from drvs.testing.doc_examples import commands, shell_blocks
+from drvs.testing.footprint import MIB, established, rss
 from drvs.testing.harness import REPO
 from drvs.testing.hostile_bodies import random_body
 
@@ -88,7 +91,11 @@ def site(module_ros, tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv('ROS_MASTER_URI', module_ros.master.uri)
         patch.setenv('ROS_HOSTNAME', '127.0.0.1')
-        server = module_ros.start_node('nodes/drvs_server', name='drvs', params={'fused_deadline': 1.0})
+        server = module_ros.start_node(
+            'nodes/drvs_server',
+            name='drvs',
+            params={'fused_deadline': 1.0, 'max_pending': 1000, 'max_pending_per_vision_system': 1000},
+        )
         module_ros.wait_for_service('/drvs/detect_object_boundary', node=server)
         module_ros.start_node(
             'test/nodes/fake_vision_system.py',
@@ -109,9 +116,11 @@ def site(module_ros, tmp_path_factory):
             name='gateway',
             params={
                 'bind': url.removeprefix('http://'),
+                'rosbridge_bind': 'none',  # test_rosbridge.py tests it
                 'tokens': tokens,
                 'max_requests_per_s': 1000,
                 'burst': 1000,
+                'request_timeout': 5.0,
             },
         )
         client = Client(url, full)
@@ -208,7 +217,12 @@ def test_no_drvs_server_is_503_within_the_deadline(site):
     lonely = ros.start_node(
         'nodes/drvs_gateway',
         name='lonely',
-        params={'bind': url.removeprefix('http://'), 'server': '/nowhere', 'server_timeout': 1.0},
+        params={
+            'bind': url.removeprefix('http://'),
+            'rosbridge_bind': 'none',
+            'server': '/nowhere',
+            'server_timeout': 1.0,
+        },
     )
     client = Client(url)
     wait_for(lambda: _answers(client), 30, 'the second gateway', on_timeout=lonely.describe)
@@ -229,7 +243,7 @@ def _answers(client):
 
 def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
     node = site['ros'].start_node(
-        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}'}
+        'nodes/drvs_gateway', name='open', params={'bind': f'0.0.0.0:{free_port()}', 'rosbridge_bind': 'none'}
     )
     wait_for(lambda: not node.running(), 30, 'the gateway to refuse', on_timeout=node.describe)
     assert node.process.returncode == 2
@@ -239,7 +253,7 @@ def test_without_tokens_it_refuses_to_listen_beyond_loopback(site):
 def test_the_docs_examples_run_as_written(site, tmp_path):
     """docs/gateway.md's Python client and its first two curl commands, against this gateway."""
     page = (REPO / 'docs' / 'gateway.md').read_text()
-    (python,) = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)
+    python = re.findall(r'^```python\n(.*?)^```', page, re.S | re.M)[0]  # the first; the next: roslibpy
     env = {**os.environ, 'DRVS_GATEWAY': site['url'], 'DRVS_TOKEN': site['full'], 'TOKEN': site['full']}
     script = tmp_path / 'client.py'
     script.write_text(python)
@@ -267,7 +281,18 @@ def test_ten_thousand_random_bodies(site):
 
 
 def hostile(site, count):
-    rng = random.Random(27)
+    """``count`` random bodies after a warm-up of a tenth as many: every answer a clean 2xx/4xx,
+    and the gateway's memory and connections back near where the warm-up left them."""
+    pid, port = site['gateway'].pid, int(site['url'].rpartition(':')[2])
+    _random_bodies(site, count // 10, seed=count)
+    before = rss(pid)
+    _random_bodies(site, count, seed=27)
+    wait_for(lambda: established(pid, port) == 0, 10, 'every connection of the run closed')
+    assert rss(pid) - before < 20 * MIB, f'{(rss(pid) - before) / MIB:.1f} MiB more'
+
+
+def _random_bodies(site, count, seed):
+    rng = random.Random(seed)
     client = site['client']
     statuses = {}
     for _ in range(count):
@@ -282,8 +307,56 @@ def hostile(site, count):
     assert status == 200 and health['gateway']['errors'] == 0 and health['gateway']['watches'] == 0
     assert site['gateway'].running()
 
-    def drvs_watches():  # the server's own count, on /diagnostics once a second
+    def no_drvs_watches():  # the server's own count, on /diagnostics once a second
         server = client('GET', '/v1/health')[2]['server']
-        return int(server['values']['watches'])
+        return server is not None and int(server['values']['watches']) == 0
 
-    wait_for(lambda: drvs_watches() == 0, 20, 'every DRVS watch withdrawn')
+    wait_for(no_drvs_watches, 20, 'every DRVS watch withdrawn')
+
+
+SLOW_SENDERS = 16
+
+
+def test_slow_senders_and_a_reader_that_never_reads_delay_nobody(site):
+    """A slowloris (a request's head one byte every 0.5 s on many connections) and an event stream
+    nobody reads: a normal client's requests are answered while they are open, and the gateway cuts
+    the slow senders off after ~request_timeout (5 s here)."""
+    client, url, token = site['client'], site['url'], site['full']
+    host, port = url.removeprefix('http://').split(':')
+    pid = site['gateway'].pid
+    status, _, watch = client('POST', '/v1/watches', {'algorithm': COLOUR, 'region': REGION, 'period': 0.1})
+    assert status == 201, watch
+    mute = socket.create_connection((host, int(port)), timeout=20)  # reads nothing, ever
+    mute.sendall(
+        f'GET {watch["events"]} HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n\r\n'.encode()
+    )
+    head = b'POST /v1/detect HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n'
+    slow = [socket.create_connection((host, int(port)), timeout=20) for _ in range(SLOW_SENDERS)]
+    try:
+        sent = 0
+
+        def trickle():
+            """One more byte on each slow connection; how many the gateway still holds (and the mute)."""
+            nonlocal sent
+            for each in slow:
+                with contextlib.suppress(OSError):  # cut off
+                    each.sendall(head[sent : sent + 1])
+            sent += 1
+            return established(pid, int(port))
+
+        wait_for(lambda: trickle() == SLOW_SENDERS + 1, 10, 'the slow ones and the mute one connected')
+        status, _, answer = client('POST', '/v1/detect', {'algorithm': COLOUR, 'region': REGION, 'wait': 5})
+        assert (status, len(answer['callbacks'])) == (200, 1), answer
+        assert client('GET', '/v1/health')[0] == 200
+        assert established(pid, int(port)) == SLOW_SENDERS + 1, 'answered only once the slow ones were gone'
+
+        def cut_off():
+            time.sleep(0.5)  # the slowloris's pace, not a wait for the gateway
+            return trickle() == 1  # the mute one is not cut off: it sent its request
+
+        wait_for(cut_off, 30, 'the slow senders cut off')
+        assert site['gateway'].running()
+    finally:
+        for each in [*slow, mute]:
+            each.close()
+        client('DELETE', f'/v1/watches/{watch["id"]}')
