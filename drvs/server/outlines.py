@@ -191,6 +191,20 @@ def _hull(points: np.ndarray) -> tuple[Point, ...]:
     return tuple(lower[:-1] + upper[:-1])
 
 
+def polygon_centroid(outline: Sequence[Point]) -> Point | None:
+    """The area centroid of a simple polygon (shoelace); None when it has no area."""
+    points = np.asarray(outline, dtype=float)
+    if points.ndim != 2 or len(points) < 3:
+        return None
+    x, y = points[:, 0], points[:, 1]
+    x1, y1 = np.roll(x, -1), np.roll(y, -1)
+    cross = x * y1 - x1 * y
+    area = cross.sum() / 2.0
+    if abs(area) < 1e-12:
+        return None
+    return (float(((x + x1) * cross).sum() / (6.0 * area)), float(((y + y1) * cross).sum() / (6.0 * area)))
+
+
 def _signed_area(points: np.ndarray) -> float:
     x, y = points[:, 0], points[:, 1]
     return 0.5 * float((x[:-1] * y[1:] - x[1:] * y[:-1]).sum() + x[-1] * y[0] - x[0] * y[-1])

@@ -46,7 +46,9 @@ class Track:
     last_seen: float
     seen: dict[str, Seen] = field(default_factory=dict)  # camera -> its newest outline
     stationary: bool = False
-    fused: tuple[float, np.ndarray] | None = None  # the fused outline at a stamp; None after an update
+    fused: tuple[float, float, np.ndarray] | None = (
+        None  # (stamp, outline age, fused outline); None after an update
+    )
 
     def velocity(self) -> Point:
         if self.stationary:
@@ -68,14 +70,14 @@ class Track:
     def outline(self, at: float, age: float) -> tuple[Point, ...]:
         """The union of its fresh outlines, each moved along the velocity to ``at`` (counter-clockwise)."""
         vx, vy = self.velocity()
-        if self.fused is None:  # computed at last_seen once, then moved as a whole
+        if self.fused is None or self.fused[1] != age:  # computed at last_seen once, then moved as a whole
             stamp = self.last_seen
             moves = [
                 (seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)))
                 for seen in self.fresh(age)
             ]
-            self.fused = (stamp, np.array(union_outline(moves)))
-        stamp, points = self.fused
+            self.fused = (stamp, age, np.array(union_outline(moves)))
+        stamp, _, points = self.fused
         return tuple((x, y) for x, y in (points + (vx * (at - stamp), vy * (at - stamp))).tolist())
 
 

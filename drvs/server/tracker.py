@@ -19,7 +19,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 from shapely.geometry import Polygon, box
 
-from drvs.server.outlines import Shape, clean, contains
+from drvs.server.outlines import Shape, clean, contains, polygon_centroid, union_outline
 from drvs.server.pose_check import PoseCheck
 from drvs.server.track_association import Candidate, Rules, Seen, Track, associate
 from drvs.server.track_motion import Motion, MotionNoise
@@ -28,6 +28,11 @@ __all__ = ['DEFAULTS', 'FrameResult', 'Observation', 'TrackView', 'Tracker', 'Tr
 
 Point = tuple[float, float]
 Box = tuple[float, float, float, float]
+
+
+EXTENDED = 0.4
+"""Metres: an object whose outline's half-diagonal reaches this (a shelf, a cart, not a person) is
+placed by the union of the cameras' outlines, not by each camera's own (:meth:`Tracker._measured`)."""
 
 
 @dataclass(frozen=True)
@@ -276,7 +281,8 @@ class Tracker:
         return confidence if confidence > 0 else self.settings.default_confidence
 
     def _update(self, track: Track, camera: str, stamp: float, candidate: Candidate) -> None:
-        track.motion.update(stamp, candidate.shape.centroid, self._sigma2(candidate.shape))
+        centroid = self._measured(track, camera, stamp, candidate.shape)
+        track.motion.update(stamp, centroid, self._sigma2(candidate.shape))
         seen = track.seen.get(camera)
         if seen is None or seen.stamp <= stamp:
             track.seen[camera] = Seen(stamp, candidate.shape)
@@ -285,6 +291,25 @@ class Tracker:
         track.evidence = 1 - (1 - track.evidence) * (1 - self._evidence(candidate.confidence))
         speed = track.motion.average_speed(self.settings.stationary_time)
         track.stationary = speed is not None and speed < self.settings.stationary_speed
+
+    def _measured(self, track: Track, camera: str, stamp: float, shape: Shape) -> Point:
+        """Where the frame puts the track: the centroid of this camera's outline together with the
+        other cameras' recent ones (moved along the velocity to ``stamp``). A camera that sees only
+        part of a big object (a shelf wider than its view) then moves the track no more than the
+        part it adds: its own centroid alone would swing between the cameras' halves and read as
+        motion."""
+        s = self.settings
+        age = s.coast if track.stationary else s.outline_age
+        others = [
+            seen for other, seen in track.seen.items() if other != camera and abs(stamp - seen.stamp) <= age
+        ]
+        if not others or max(seen.shape.radius for seen in [*others, Seen(stamp, shape)]) < EXTENDED:
+            return shape.centroid  # a small object: every camera sees all of it
+        vx, vy = track.velocity()
+        moves = [(shape, (0.0, 0.0))] + [
+            (seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp))) for seen in others
+        ]
+        return polygon_centroid(union_outline(moves)) or shape.centroid
 
     def _create(self, camera: str, stamp: float, candidate: Candidate) -> None:
         shape = candidate.shape
@@ -351,7 +376,9 @@ class Tracker:
             if age > s.coast:
                 continue
             vx, vy = track.velocity()
-            outline = track.outline(at, s.outline_age)
+            # A stationary object's outlines stay valid however old: a shelf wider than one camera's
+            # view is the union of every camera's part, whenever each was seen (within the coast time).
+            outline = track.outline(at, s.coast if track.stationary else s.outline_age)
             if region is not None and not _overlaps(outline, region):
                 continue
             freshness = min(1.0, 1.0 - age / s.coast)

@@ -401,3 +401,18 @@ def test_settings_are_checked():
         TrackerSettings(gate=-1.0)
     with pytest.raises(ValueError, match=r'^min_overlap: must be at most 1, got 2$'):
         TrackerSettings(min_overlap=2)
+
+
+def test_a_stationary_object_wider_than_one_view_keeps_every_cameras_part():
+    """A shelf seen in two halves by two cameras, their frames 0.4 s apart: one track, not moving
+    (the halves' centroids 0.9 m apart are no motion), and its fused outline is both halves."""
+    tracker = Tracker()
+    left = Observation(((0.0, 0.0), (1.2, 0.0), (1.2, 0.5), (0.0, 0.5)))
+    right = Observation(((1.0, 0.0), (2.0, 0.0), (2.0, 0.5), (1.0, 0.5)))
+    for step in range(8):
+        tracker.frame('a', 0.8 * step, [left])
+        tracker.frame('b', 0.8 * step + 0.4, [right])
+    (view,) = tracker.tracks(6.0)
+    assert view.stationary
+    xs = [x for x, _ in view.outline]
+    assert (min(xs), max(xs)) == (pytest.approx(0.0, abs=0.01), pytest.approx(2.0, abs=0.01))
