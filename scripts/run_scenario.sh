@@ -18,7 +18,7 @@
 # otherwise); then stops everything it started (also on Ctrl-C), leaves
 # DIR/summary.json and DIR/run.png and prints the run's figures (a row per robot
 # and per camera, the server's totals). Exits 0 only if every robot reached its
-# station, and names those that did not otherwise.
+# station without a collision, and names those that did not, or collided, otherwise.
 # A world with real_time_factor below 1 runs on ROS simulated time: /use_sim_time
 # is set true on the master before any node starts (false for any other world),
 # and world_sim, which publishes /clock, starts first.
@@ -73,8 +73,8 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
   --robot-link RATE      with --hosts: limit the first robot's link to RATE both ways, e.g. 2mbit
   -h, --help             print this help and exit
 Stop it with Ctrl-C; if this script was killed, $stop_script DIR stops what it started.
-Exit code: 0 every robot reached its station; 1 a robot failed, the run timed out or a node
-crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
+Exit code: 0 every robot reached its station without a collision; 1 a robot failed or collided,
+the run timed out or a node crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
 network hosts possible with --hosts; 130 interrupted.
 EOF
 }
@@ -401,10 +401,19 @@ elif [ "$result" = done ] && [ "${ended[${awaited[0]}]}" -ne 0 ]; then
 fi
 [ "$result" != done ] || [ ${#failed[@]} -gt 0 ] || result=reached
 [ "$result" != done ] || result=failed
+# A collision fails a blind robot's mission, even when every robot reached its station.
+collided=""
+if [ -f "$out/summary.json" ]; then
+  collided=$("$py" -c 'import json, sys
+from drvs.sim.report import collision_failure
+print(collision_failure(json.load(open(sys.argv[1]))))' "$out/summary.json")
+fi
+[ -z "$collided" ] || [ "$result" != reached ] || result=collided
 if [ $stay -eq 1 ] && [ "$result" != crashed ]; then
   case $result in
     reached) outcome="every robot reached its station" ;;
     failed) outcome="did not reach the station: ${failed[*]}" ;;
+    collided) outcome="every robot reached its station, with collisions: $collided" ;;
     *) outcome="timed out after $timeout s" ;;
   esac
   echo "run_scenario: $outcome; DRVS and the robots keep running at $ROS_MASTER_URI until Ctrl-C"
@@ -421,6 +430,7 @@ for robot in "${failed[@]}"; do
   fi
 done
 [ "$result" != timeout ] || echo "run_scenario: timed out after $timeout s${not_done:+; not done: ${not_done[*]}}" >&2
+[ -z "$collided" ] || echo "run_scenario: $collided" >&2
 [ -f "$out/summary.json" ] && echo "run_scenario: summary $out/summary.json, picture $out/run.png"
 [ -f "$out/run.bag" ] && [ $record -eq 1 ] && echo "run_scenario: bag $out/run.bag (nodes/drvs_report $out/run.bag)"
 [ "$result" = reached ]

@@ -92,6 +92,7 @@ class RunRecorder:
         self._counted_status: dict[str, genpy.Time] = {}  # robot -> its newest status up to the end
         self._last_trace: dict[str, tuple[float, float]] = {}
         self._robot_position: dict[str, tuple[float, float]] = {}
+        self._touching: dict[str, set[str]] = {}  # robot -> what it touched in the last ground truth
 
     @property
     def closed(self) -> bool:
@@ -138,6 +139,10 @@ class RunRecorder:
                 x, y = robots[name]['position']
                 self._robot_position[name] = (x, y)
                 robot.collisions = int(robots[name]['contacts'])
+                touching = set(robots[name].get('touching', ()))
+                for other in sorted(touching - self._touching.get(name, set())):
+                    robot.touches.append((other, x, y))
+                self._touching[name] = touching
                 robot.travelled = float(robots[name]['travelled'])
                 last = self._last_trace.get(name)
                 if last is None or math.dist(last, (x, y)) >= TRACE_STEP:
