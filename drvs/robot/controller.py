@@ -15,9 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drvs.robot.dstar_lite import DStarLite
+from drvs.robot.dstar_lite import FREE, DStarLite
 from drvs.robot.occupancy import CostGrid, crosses_margin
 from drvs.robot.perception import Fix
+from drvs.robot.plan import densify, nearest_on_path, point_along, shortcut
 from drvs.robot.robot_status import RobotStatus
 
 log = logging.getLogger('rosout.' + __name__)
@@ -227,7 +228,7 @@ class Controller:
             self.path = []
             return
         previous = self.path[self._progress :]
-        self.path = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
+        self.path = self._smoothed(cells)
         self._progress = 0
         # A repair that leaves the route where it was (a human moving beside it, an outline
         # a pixel wider) is not a re-plan: only a changed route counts and is logged as one.
@@ -246,30 +247,30 @@ class Controller:
             f' (re-plan {self.replans})' if replan else '',
         )
 
+    def _smoothed(self, cells: Sequence[tuple[int, int]]) -> list[Point]:
+        """The grid path ``cells`` from the robot to the goal as straight segments over free cells
+        (:func:`drvs.robot.plan.shortcut`), a point every cell along them."""
+        assert self.position is not None and self.goal is not None  # by _decide
+        spec, costs = self.grid.spec, self.grid.costs
+        points = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
+        free = [bool(costs[c] == FREE) for c in cells]
+        if len(cells) == 1:  # the robot and its goal in one cell
+            free = free * 2
+        return densify(shortcut(points, free, costs, spec.resolution), spec.resolution)
+
     def _distance_to_path(self) -> float:
         assert self.position is not None  # a path starts where the robot was located
         points = np.asarray(self.path)
         return float(np.hypot(points[:, 0] - self.position[0], points[:, 1] - self.position[1]).min())
 
     def _follow(self, to_goal: float) -> tuple[float, float]:
-        """Steer to the point ``lookahead`` metres along the path past the nearest path vertex."""
+        """Pure pursuit: steer to the point ``lookahead`` metres along the plan past the point of
+        it nearest the robot (on a straight segment, the robot converges onto it and stays)."""
         assert self.position is not None  # a path starts where the robot was located
         s = self.settings
-        points = np.asarray(self.path)
-        window = points[self._progress :]
-        nearest = self._progress + int(
-            np.argmin(np.hypot(window[:, 0] - self.position[0], window[:, 1] - self.position[1]))
-        )
-        self._progress = nearest
-        target = self.path[-1]
-        travelled = 0.0
-        previous = self.position
-        for point in self.path[nearest + 1 :]:
-            travelled += _distance(previous, point)
-            previous = point
-            if travelled >= s.lookahead:
-                target = point
-                break
+        segment, fraction = nearest_on_path(self.path, self.position, self._progress)
+        self._progress = segment
+        target = point_along(self.path, segment, fraction, s.lookahead)
         dx, dy = target[0] - self.position[0], target[1] - self.position[1]
         norm = math.hypot(dx, dy)
         if norm < 1e-9:

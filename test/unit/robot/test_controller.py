@@ -1,7 +1,9 @@
 """Controller logic in a small kinematic simulation with late fixes (no ROS)."""
 
+import random
+
 import pytest
-from shapely.geometry import Point, box
+from shapely.geometry import LineString, Point, box
 
 from drvs.robot.controller import ARRIVED, BLOCKED, FAILED, Controller, ControllerSettings, DeadReckoning
 from drvs.robot.occupancy import CostGrid, GridSpec
@@ -19,11 +21,24 @@ def fix_at(position, stamp, seq):
 
 
 class Sim:
-    """The true robot moves with the commanded velocity; fixes arrive ``latency`` s after capture."""
+    """The true robot moves with the commanded velocity in ``map`` (world_sim's holonomic robot);
+    fixes arrive ``latency`` s after capture, off by gaussian ``noise`` (m, seeded)."""
 
-    def __init__(self, start, obstacles=(), latency=0.2, period=0.1, settings=None):
-        self.grid = CostGrid(SPEC, RADIUS)
+    def __init__(
+        self,
+        start,
+        obstacles=(),
+        latency=0.2,
+        period=0.1,
+        settings=None,
+        spec=SPEC,
+        station=STATION,
+        noise=0.0,
+    ):
+        self.grid = CostGrid(spec, RADIUS)
         self.controller = Controller(self.grid, settings or ControllerSettings(speed=0.5), now=0.0)
+        self.station = station
+        self.noise, self.rng = noise, random.Random(7)
         self.true = start
         self.now = 0.0
         self.latency, self.period = latency, period
@@ -42,10 +57,11 @@ class Sim:
             if fixes:
                 self.captures.append((self.now, self.true))
                 while self.captures and self.captures[0][0] <= self.now - self.latency:
-                    stamp, position = self.captures.pop(0)
+                    stamp, (x, y) = self.captures.pop(0)
                     self.seq += 1
-                    self.fix = fix_at(position, stamp, self.seq)
-            vx, vy = self.controller.step(self.now, self.fix, fix_at(STATION, 0.0, 1))
+                    seen = (x + self.rng.gauss(0.0, self.noise), y + self.rng.gauss(0.0, self.noise))
+                    self.fix = fix_at(seen, stamp, self.seq)
+            vx, vy = self.controller.step(self.now, self.fix, fix_at(self.station, 0.0, 1))
             self.true = (self.true[0] + vx * self.period, self.true[1] + vy * self.period)
             self.trace.append(self.true)
             self.now += self.period
@@ -75,6 +91,24 @@ def test_reaches_the_station_despite_late_fixes():
     assert sim.controller.state == ARRIVED
     assert Point(sim.true).distance(Point(STATION)) <= 0.1
     assert sim.controller.replans == 0
+
+
+@pytest.mark.parametrize('noise', [0.0, 0.01])
+@pytest.mark.parametrize('station', [(3.6, 2.3), (3.6, 0.9), (1.2, 2.6)])
+def test_follows_a_straight_plan_at_any_angle_within_a_few_centimetres(station, noise):
+    # On an open floor the plan is one straight segment, whatever D* Lite's 8-connected staircase;
+    # after settling the true robot stays within 3 cm of it, with late (and noisy) fixes.
+    start = (0.4, 0.5)
+    sim = Sim(start, spec=GridSpec((4.0, 3.0), 0.05), station=station, noise=noise)
+    sim.run(1.0)
+    plan = sim.controller.path
+    line = LineString([plan[0], plan[-1]])
+    assert plan[-1] == pytest.approx(station) and Point(plan[0]).distance(Point(start)) < 4 * noise + 1e-9
+    assert max(line.distance(Point(p)) for p in plan) < 1e-9
+    sim.run(20)
+    assert sim.controller.state == ARRIVED and sim.controller.path == plan
+    settled = [p for p in sim.trace if Point(p).distance(Point(start)) > 0.3]
+    assert max(line.distance(Point(p)) for p in settled) < 0.03
 
 
 def test_replans_around_an_obstacle_that_appears_on_the_path():
