@@ -19,7 +19,15 @@ from shapely.geometry import Point, Polygon
 from shapely.ops import unary_union
 
 from drvs.robot.occupancy import Cell, CostGrid, GridSpec, MapPublishing, ObstacleMemory
-from drvs.robot.perception import FLEET_ROLE, Fix, cut_bodies, exclude_bodies, merge_outlines
+from drvs.robot.perception import (
+    FLEET_ROLE,
+    STATIC_ROLES,
+    Box,
+    Fix,
+    cut_bodies,
+    exclude_bodies,
+    merge_outlines,
+)
 from drvs.sim.world import box_footprint
 
 __all__ = [
@@ -134,10 +142,20 @@ class MapBuilder:
         self._memory_lock = threading.Lock()  # guards _memory: callbacks observe, the control loop reads
         self._memory = ObstacleMemory(ttl)
 
-    def observe(self, role: str, vision_system: str, outlines: Sequence[Polygon], now: float) -> None:
-        """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while)."""
+    def observe(
+        self,
+        role: str,
+        vision_system: str,
+        outlines: Sequence[Polygon],
+        now: float,
+        region: Box | None = None,
+    ) -> None:
+        """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while) in
+        ``region``, the region the robot asked it about: a static role's outlines it reported
+        before outside that region stay."""
+        region = region if role in STATIC_ROLES else None
         with self._memory_lock:
-            self._memory.observe((role, vision_system), outlines, now, linger=self.linger)
+            self._memory.observe((role, vision_system), outlines, now, linger=self.linger, region=region)
 
     def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its

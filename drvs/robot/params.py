@@ -90,6 +90,13 @@ class RobotParams(Settings):
         unit='m',
         check=POSITIVE,
     )
+    answer_wait: float = param(
+        0.5,
+        'a new plan is followed once the obstacles of its corridor were asked about and answered: '
+        'by every vision system asked, or this long after DRVS accepted the call',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
     map_period: float = param(
         1.0,
         'at most one `~map` per period while the map changes (it is the whole grid, a byte a cell); '

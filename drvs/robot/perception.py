@@ -89,10 +89,12 @@ class RegionPolicy:
         position: Point | None,
         velocity: Point = (0.0, 0.0),
         lost: Collection[str] = (),
+        corridor: Box | None = None,
     ) -> dict[str, Region]:
         """Role -> region, from the newest fixes, the predicted ``position`` (None: the fix's), the
-        commanded ``velocity`` and the roles whose vision systems all say they see nothing of it
-        (``lost``)."""
+        commanded ``velocity``, the roles whose vision systems all say they see nothing of it
+        (``lost``) and the ``corridor`` of the robot's plan (:attr:`Controller.corridor
+        <drvs.robot.controller.Controller.corridor>`), which the obstacle roles must cover."""
         floor, size, margin = whole_floor(self.floor_size), self.floor_size, self.self_margin
         regions = dict.fromkeys(LOCALISATION_ROLES, Region(floor, floor))
         here = position or (fix.position if fix is not None else None)
@@ -118,6 +120,10 @@ class RegionPolicy:
             roi = spanned(here, station.position, self.roi_margin, size)
             roi = _union(roi, spanned(heading, station.position, self.roi_margin, size))
             needed = spanned(here, station.position, self.roi_margin / 2, size)
+            if corridor is not None and corridor[0] <= corridor[2]:
+                needed = _union(needed, corridor)
+                low, high = corridor[:2], corridor[2:]
+                roi = _union(roi, spanned(low, high, self.roi_margin / 2, size))
             regions.update(dict.fromkeys(self.obstacle_roles, Region(roi, needed)))
         return regions
 

@@ -20,6 +20,7 @@ from drvs.common.guard import RESTART, SHUTDOWN
 from drvs.common.health import Health, robot_health
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
+from drvs.robot.asked import AskedFloor
 from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
 from drvs.robot.mapping import MapBuilder
 from drvs.robot.mission import (
@@ -76,6 +77,7 @@ class BlindRobot:
             self.robot_radius = math.hypot(size[0], size[1]) / 2
         self.watching = params.requests == WATCH
         self.perception = Perception(me.colour_models, rospy.get_name(), watch_keep=params.watch_duration)
+        self.asked = AskedFloor(self.perception.obstacle_roles, params.answer_wait)
         self.regions = RegionPolicy(
             self.floor_size,
             self.perception.obstacle_roles,
@@ -104,11 +106,12 @@ class BlindRobot:
             lookahead=params.lookahead,
             replan_distance=params.replan_distance,
             route_tolerance=params.route_tolerance,
+            corridor_margin=params.roi_margin / 2,
         )
         self.schedule = schedule_for(params, tuple(me.colour_models), clock=rospy.get_time)
         self.controller: Controller | None = None  # from start()
         self.coverage: Coverage | None = None  # from start()
-        self._lock = threading.Lock()  # guards perception and coverage, and orders the map's observations
+        self._lock = threading.Lock()  # guards perception, asked and coverage; orders the map's observations
         self._requests = threading.Condition()  # guards schedule; wakes the requester for a new round
         self._tracking = False  # whether the robot's own region is around it (else the whole floor)
         self._done = threading.Event()
@@ -200,7 +203,9 @@ class BlindRobot:
             else:
                 refused = None
                 if answer is not None and answer.role in self.map.obstacle_roles:
-                    self.map.observe(answer.role, answer.vision_system, answer.outlines, received)
+                    region = self.asked.region(answer.role)
+                    self.map.observe(answer.role, answer.vision_system, answer.outlines, received, region)
+                    self.asked.heard(answer.role, answer.vision_system, received)
         if refused is not None:
             self.node.counters.add(refused_callbacks=1)
             self.node.log_throttled(
@@ -263,7 +268,7 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
-        self._answered(role, f'request {request_id}', outcome, response)
+        self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest)
 
     def _send_watch(self, call: WatchCall) -> None:
         role = call.role
@@ -305,13 +310,17 @@ class BlindRobot:
                 role, response.status, response.duration, response.retry_after, response.message
             )
         if call.duration:
-            self._answered(role, f'watch {request_id} ({call.reason})', outcome, response)
+            self._answered(
+                role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest
+            )
 
-    def _answered(self, role: str, what: str, outcome, response) -> None:
-        """Act on the outcome of an answered call (``what`` names it in the log)."""
+    def _answered(self, role: str, what: str, outcome, response, region) -> None:
+        """Act on the outcome of an answered call over ``region`` (``what`` names it in the log)."""
         if outcome.action == ACCEPT:
+            now = rospy.get_time()
             with self._lock:
-                self.coverage.accepted(role, response.vision_systems, rospy.get_time())
+                self.coverage.accepted(role, response.vision_systems, now)
+                self.asked.accepted(role, region, now, response.vision_systems)
         elif outcome.action == RETRY:
             self.node.log_throttled(
                 ('refused', response.status),
@@ -331,7 +340,10 @@ class BlindRobot:
         tick, around where it is.
         """
         velocity = velocity if self.watching else (0.0, 0.0)
-        regions = self.regions.regions(now, fix, station, self.controller.position, velocity, lost)
+        controller = self.controller
+        regions = self.regions.regions(
+            now, fix, station, controller.position, velocity, lost, controller.corridor
+        )
         tracking = regions['self'].box != whole_floor(self.floor_size)
         if tracking != self._tracking:
             self._tracking = tracking
@@ -375,6 +387,7 @@ class BlindRobot:
             fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
             lost = [role for role in LOCALISATION_ROLES if self.perception.lost(role)]
             uncovered = self.coverage.failure(now)
+            known = self.asked.known(now)
         update = self.map.update(now, fix, station)
         if update.changes:
             controller.on_map_changed(update.changes)
@@ -383,7 +396,7 @@ class BlindRobot:
             self.map_pub.publish(occupancy_to_msg(grid.occupancy(), grid.spec.resolution, now))
         if uncovered is not None:
             controller.fail(uncovered)
-        vx, vy = controller.step(now, fix, station)
+        vx, vy = controller.step(now, fix, station, known)
         self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
         self._post_round(now, fix, station, (vx, vy), lost)
         self._publish(now)

@@ -5,7 +5,16 @@ import random
 import pytest
 from shapely.geometry import LineString, Point, box
 
-from drvs.robot.controller import ARRIVED, BLOCKED, FAILED, Controller, ControllerSettings, DeadReckoning
+from drvs.robot.asked import inside
+from drvs.robot.controller import (
+    ARRIVED,
+    BLOCKED,
+    FAILED,
+    MOVING,
+    Controller,
+    ControllerSettings,
+    DeadReckoning,
+)
 from drvs.robot.occupancy import CostGrid, GridSpec
 from drvs.robot.perception import Fix
 
@@ -52,7 +61,7 @@ class Sim:
         self.obstacles = list(obstacles)
         self.controller.on_map_changed(self.grid.apply(self.obstacles))
 
-    def run(self, seconds, until=None, fixes=True):
+    def run(self, seconds, until=None, fixes=True, known=None):
         for _ in range(int(round(seconds / self.period))):
             if fixes:
                 self.captures.append((self.now, self.true))
@@ -61,7 +70,7 @@ class Sim:
                     self.seq += 1
                     seen = (x + self.rng.gauss(0.0, self.noise), y + self.rng.gauss(0.0, self.noise))
                     self.fix = fix_at(seen, stamp, self.seq)
-            vx, vy = self.controller.step(self.now, self.fix, fix_at(self.station, 0.0, 1))
+            vx, vy = self.controller.step(self.now, self.fix, fix_at(self.station, 0.0, 1), known)
             self.true = (self.true[0] + vx * self.period, self.true[1] + vy * self.period)
             self.trace.append(self.true)
             self.now += self.period
@@ -119,6 +128,39 @@ def test_replans_around_an_obstacle_that_appears_on_the_path():
     assert sim.controller.state == ARRIVED
     assert sim.controller.replans >= 1
     assert clearance(sim) > 0.15  # the body (half width 0.15 m) never touched it
+
+
+def test_a_plan_over_floor_not_asked_about_waits_for_the_answers():
+    # The robot knows the obstacles of a band around the straight way only; a box across it
+    # makes the way round leave the band: the robot stops, keeps its old plan, and follows the
+    # new one only once the floor around it is known.
+    band = (0.0, 0.5, 3.0, 1.5)
+    sim = Sim((0.4, 1.0))
+    sim.run(10, until=lambda s: s.true[0] > 1.0, known=band)
+    assert sim.controller.pending is None and inside(sim.controller.corridor, band)
+    followed = sim.controller.path
+    sim.set_obstacles([box(1.5, 0.45, 1.8, 1.55)])
+    sim.run(1.0, known=band)
+    stopped = sim.true
+    assert sim.controller.pending is not None and not inside(sim.controller.corridor, band)
+    assert sim.controller.path is followed and sim.controller.replans == 0
+    assert sim.controller.state == MOVING and sim.controller.step(
+        sim.now, sim.fix, fix_at(STATION, 0, 1), band
+    ) == (0, 0)
+    sim.run(1.0, known=band)
+    assert sim.true == stopped  # it waits
+    sim.run(20, known=(0.0, 0.0, 3.0, 2.0))  # answered: the whole floor
+    assert sim.controller.state == ARRIVED and sim.controller.replans == 1
+    assert clearance(sim) > 0.15
+
+
+def test_no_answers_about_the_floor_of_a_plan_fail_after_the_unreachable_timeout():
+    sim = Sim((0.4, 1.0), settings=ControllerSettings(speed=0.5, unreachable_timeout=2.0))
+    sim.run(5, known=(0.0, 0.0, 1.0, 1.0))
+    assert sim.controller.state == FAILED and sim.true == (0.4, 1.0)
+    assert sim.controller.reason == (
+        'no answers about the floor of its plan (obstacles in (0.03, 0.62)-(2.98, 1.38)) for 2.0 s'
+    )
 
 
 def test_changes_far_from_the_path_do_not_replan():

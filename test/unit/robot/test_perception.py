@@ -292,6 +292,15 @@ def test_once_found_itself_around_its_predicted_position_and_its_station_in_its_
     assert set(regions) == {'self', 'station', 'obstacle', 'human'}
 
 
+def test_the_obstacle_roles_cover_the_corridor_of_the_plan(policy):
+    # The plan goes round below the robot-station box: its corridor is needed, and asked with a margin.
+    corridor = (2.5, 0.5, 5.5, 2.5)
+    regions = policy.regions(11.0, fix_at(2.0, 2.0), fix_at(6.0, 3.0), None, corridor=corridor)
+    assert regions['obstacle'].needed == pytest.approx((1.625, 0.5, 6.375, 3.375))
+    assert regions['obstacle'].box == pytest.approx((1.25, 0.125, 6.75, 3.75))
+    assert regions['human'] == regions['obstacle']
+
+
 def test_a_moving_robots_region_reaches_half_the_margin_ahead(policy):
     regions = policy.regions(11.0, fix_at(2.0, 2.0), None, (2.0, 2.0), velocity=(0.0, -0.3))
     assert regions['self'].box == pytest.approx((0.8, 0.3, 3.2, 2.7))
