@@ -21,6 +21,7 @@ from drvs.robot.occupancy import CostGrid, crosses_margin
 from drvs.robot.perception import Fix
 from drvs.robot.plan import corridor, densify, nearest_on_path, point_along, shortcut
 from drvs.robot.robot_status import RobotStatus
+from drvs.robot.traffic import Mover, Yielding
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -105,9 +106,13 @@ def route_changed(old: Sequence[Point], new: Sequence[Point], tolerance: float) 
 class Controller:
     """Plans on ``grid`` with D* Lite and drives along the plan; see the module docstring."""
 
-    def __init__(self, grid: CostGrid, settings: ControllerSettings, now: float):
+    def __init__(
+        self, grid: CostGrid, settings: ControllerSettings, now: float, yielding: Yielding | None = None
+    ):
         self.grid = grid
         self.settings = settings
+        self.yielding = yielding  # gives way to other robots (None: never)
+        self.yielding_to: Mover | None = None  # the robot it gives way to now
         self.state = LOCALISING
         self.reason = ''
         self.replans = 0
@@ -156,15 +161,29 @@ class Controller:
 
     # -- the control tick --------------------------------------------------------------------
     def step(
-        self, now: float, fix: Fix | None, station: Fix | None, known: Box | None = None
+        self,
+        now: float,
+        fix: Fix | None,
+        station: Fix | None,
+        known: Box | None = None,
+        movers: Sequence[Mover] = (),
     ) -> tuple[float, float]:
         """Decide the velocity (vx, vy) in ``map`` for now; records it for dead reckoning.
 
         :param known: the floor whose obstacles the robot asked about and heard back on
             (:class:`drvs.robot.asked.AskedFloor`): a new plan is followed only once its
             corridor is inside it (None: anywhere).
+        :param movers: the other robots, with their velocities: it stands still while it gives
+            way to one (:class:`drvs.robot.traffic.Yielding`).
         """
         vx, vy = self._decide(now, fix, station, known)
+        if self.yielding is not None and self.state == MOVING and self.position is not None:
+            other = self.yielding.step(now, self.position, (vx, vy), movers)
+            if other is not None and self.yielding_to is None:
+                log.info('giving way to a robot at (%.2f, %.2f)', *other.position)
+            self.yielding_to = other
+            if other is not None:
+                vx, vy = 0.0, 0.0
         self.dead_reckoning.command(now, vx, vy)
         return vx, vy
 

@@ -28,6 +28,7 @@ from drvs.robot.perception import (
     exclude_bodies,
     merge_outlines,
 )
+from drvs.robot.traffic import Mover, MoverTracker, swept
 from drvs.sim.world import box_footprint
 
 __all__ = [
@@ -119,6 +120,8 @@ class MapBuilder:
     :param linger: an empty report keeps a source's outlines this long more.
     :param map_period: at most one ``~map`` per period while the map changes.
     :param resolution: the cell size (default :func:`grid_resolution`).
+    :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
+    :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
     """
 
     def __init__(
@@ -131,6 +134,8 @@ class MapBuilder:
         linger: float,
         map_period: float,
         resolution: float | None = None,
+        clearance: float = 0.0,
+        horizon: float = 0.0,
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
@@ -139,8 +144,19 @@ class MapBuilder:
         self.trail = OwnTrail(robot_radius + BODY_MARGIN)
         self.publishing = MapPublishing(map_period)
         self.obstacles = 0  # obstacle outlines in the current grid
+        self.clearance, self.horizon = clearance, horizon
+        self.tracker = MoverTracker()
+        self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
+        self._fleet_heard = (
+            -math.inf
+        )  # when a vision system last reported the fleet role (under _memory_lock)
         self._memory_lock = threading.Lock()  # guards _memory: callbacks observe, the control loop reads
         self._memory = ObstacleMemory(ttl)
+
+    def _kept_clear(self, mover: Mover) -> Polygon:
+        """The floor another robot holds: its outline, swept over the horizon, grown by the clearance."""
+        area = swept(mover.outline, mover.velocity, self.horizon)
+        return area.buffer(self.clearance, 8) if self.clearance > 0 else area
 
     def observe(
         self,
@@ -155,6 +171,8 @@ class MapBuilder:
         before outside that region stay."""
         region = region if role in STATIC_ROLES else None
         with self._memory_lock:
+            if role == FLEET_ROLE:
+                self._fleet_heard = max(self._fleet_heard, now)
             self._memory.observe((role, vision_system), outlines, now, linger=self.linger, region=region)
 
     def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
@@ -162,6 +180,7 @@ class MapBuilder:
         trail, its body) and its ``station``."""
         with self._memory_lock:
             sources = self._memory.current(now)
+            fleet_heard = self._fleet_heard
         bodies = [f.outline for f in (fix, station) if f is not None]
         body = own_body(fix, self.robot_size)
         if body is not None:
@@ -170,11 +189,14 @@ class MapBuilder:
         objects = []
         for role in self.obstacle_roles:
             merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
+            if role != FLEET_ROLE:
+                objects.extend(exclude_bodies(merged, bodies))
+                continue
             # The fleet's model finds this robot too, as one blob with another robot it touches:
-            # its own body is cut out of those blobs, not the blob dropped.
-            objects.extend(
-                cut_bodies(merged, bodies) if role == FLEET_ROLE else exclude_bodies(merged, bodies)
-            )
+            # its own body is cut out of those blobs, not the blob dropped. The others keep
+            # ``clearance`` more, over the floor they sweep within ``horizon``.
+            self.movers = self.tracker.update(fleet_heard, cut_bodies(merged, bodies))
+            objects.extend(self._kept_clear(mover) for mover in self.movers)
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)
         return MapUpdate(changes, self.publishing.due(now, bool(changes)))

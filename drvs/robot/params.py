@@ -97,6 +97,29 @@ class RobotParams(Settings):
         unit='s',
         check=NON_NEGATIVE,
     )
+    robot_clearance: float = param(
+        0.15,
+        'other robots (the `robot` role) are kept clear by this much more than `~robot_radius`, '
+        'over the floor they sweep in `~traffic_horizon`',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
+    traffic_horizon: float = param(
+        1.0,
+        "how far ahead the other robots' motion is predicted: the floor they sweep meanwhile is an "
+        'obstacle, and a closest approach within it under twice `~robot_radius` (plus 5 cm) makes '
+        'the robot give way',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    yield_patience: float = param(
+        1.0,
+        'the longest the robot gives way to one robot, plus half as much again for each robot of '
+        'the world whose name sorts before its own (two robots giving way to each other do not wait '
+        'for ever); then it drives on, round the other',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
     map_period: float = param(
         1.0,
         'at most one `~map` per period while the map changes (it is the whole grid, a byte a cell); '

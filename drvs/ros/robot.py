@@ -34,6 +34,7 @@ from drvs.robot.mission import (
 from drvs.robot.params import WATCH, RobotParams
 from drvs.robot.perception import LOCALISATION_ROLES, Perception, PerceptionError, RegionPolicy, whole_floor
 from drvs.robot.poll_schedule import ACCEPT, RETRY, Request
+from drvs.robot.traffic import YIELD_MARGIN, Yielding
 from drvs.robot.watch_schedule import WatchCall
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.messages import occupancy_to_msg, path_to_msg, pose_to_msg, robot_status_to_msg
@@ -97,6 +98,14 @@ class BlindRobot:
             linger=params.obstacle_ttl,
             map_period=params.map_period,
             resolution=params.resolution,
+            clearance=params.robot_clearance,
+            horizon=params.traffic_horizon,
+        )
+        rank = sorted(robot.name for robot in world.robots).index(me.name)
+        self.yielding = Yielding(
+            params.traffic_horizon,
+            distance=2 * self.robot_radius + YIELD_MARGIN,
+            patience=params.yield_patience * (1 + rank / 2),
         )
         self.settings = ControllerSettings(
             speed=self.speed,
@@ -135,7 +144,7 @@ class BlindRobot:
         self._service = rospy.Service('~callback_coordinates', CallbackCoordinates, self._on_callback)
         self._wait_for_clock()
         started_at = rospy.get_time()
-        self.controller = Controller(self.map.grid, self.settings, now=started_at)
+        self.controller = Controller(self.map.grid, self.settings, now=started_at, yielding=self.yielding)
         self.coverage = Coverage(self.params.fix_timeout, started_at)
         rospy.on_shutdown(self.node.stopping.set)
         self.node.spawn(self._request_loop, 'requester', RESTART)
@@ -396,7 +405,7 @@ class BlindRobot:
             self.map_pub.publish(occupancy_to_msg(grid.occupancy(), grid.spec.resolution, now))
         if uncovered is not None:
             controller.fail(uncovered)
-        vx, vy = controller.step(now, fix, station, known)
+        vx, vy = controller.step(now, fix, station, known, self.map.movers)
         self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
         self._post_round(now, fix, station, (vx, vy), lost)
         self._publish(now)

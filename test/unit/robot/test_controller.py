@@ -17,6 +17,7 @@ from drvs.robot.controller import (
 )
 from drvs.robot.occupancy import CostGrid, GridSpec
 from drvs.robot.perception import Fix
+from drvs.robot.traffic import Mover, Yielding
 
 SPEC = GridSpec((3.0, 2.0), 0.05)
 RADIUS = 0.15 * 2**0.5  # half the diagonal of a 0.3 m robot
@@ -161,6 +162,20 @@ def test_no_answers_about_the_floor_of_a_plan_fail_after_the_unreachable_timeout
     assert sim.controller.reason == (
         'no answers about the floor of its plan (obstacles in (0.03, 0.62)-(2.98, 1.38)) for 2.0 s'
     )
+
+
+def test_it_stands_while_it_gives_way_to_another_robot():
+    grid = CostGrid(SPEC, RADIUS)
+    controller = Controller(grid, ControllerSettings(speed=0.5), now=0.0, yielding=Yielding(1.5, 0.47, 1.0))
+    station, here = fix_at(STATION, 0.0, 1), fix_at((0.4, 1.0), 0.0, 1)
+    assert controller.step(0.0, here, station) == pytest.approx((0.5, 0.0))
+    crossing = Mover(box(1.05, 0.45, 1.35, 0.75), (0.0, 0.4))  # will cross its way 0.8 m ahead
+    assert controller.step(0.1, here, station, movers=[crossing]) == (0.0, 0.0)
+    assert controller.yielding_to is crossing and controller.state == MOVING
+    assert controller.dead_reckoning.predict((0.4, 1.0), 0.0, 0.3) == pytest.approx((0.45, 1.0))  # stood
+    passed = Mover(box(1.05, 1.65, 1.35, 1.95), (0.0, 0.4))
+    assert controller.step(0.2, here, station, movers=[passed]) == pytest.approx((0.5, 0.0))
+    assert controller.yielding_to is None
 
 
 def test_changes_far_from_the_path_do_not_replan():

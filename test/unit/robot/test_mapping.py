@@ -117,6 +117,20 @@ def test_another_robot_touching_this_one_keeps_its_own_part():
     assert plain.obstacles == 0  # another model's blob, mostly the robot (and its trail), is dropped whole
 
 
+def test_other_robots_keep_a_clearance_over_the_floor_they_sweep_and_have_a_velocity():
+    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, clearance=0.1, horizon=1.0)
+    me = fix_at((0.5, 0.5))
+    mapping.observe('robot', '/vs1', [box(1.85, 1.35, 2.15, 1.65)], 0.0)
+    mapping.update(0.0, me, None)
+    mapping.observe('robot', '/vs1', [box(1.95, 1.35, 2.25, 1.65)], 0.2)  # 0.5 m/s east
+    mapping.update(0.2, me, None)
+    (other,) = mapping.movers
+    assert other.velocity == pytest.approx((0.25, 0.0))  # half the new estimate (smoothing)
+    # Its body, 0.25 m further east (a second at its speed), 0.1 m more round it: lethal.
+    assert lethal_at(mapping, (2.45, 1.5)) and lethal_at(mapping, (2.1, 1.73))
+    assert not lethal_at(mapping, (2.68, 1.5))
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()
