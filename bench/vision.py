@@ -93,7 +93,7 @@ def time_calls(function, repeats: int) -> tuple[list[float], object]:
 
 
 def time_request(frame, detect, region) -> tuple[float, float, list]:
-    """(segment s, project s, (outline, label) found) of one request on ``frame``."""
+    """(segment s, project s, (outline, label, confidence) found) of one request on ``frame``."""
     t0 = clock()
     pixel_objects = detect(frame)
     t1 = clock()
@@ -157,7 +157,9 @@ def colour_errors(frame, world, bodies: dict, region) -> dict:
     found = {}
     for role, role_bodies in bodies.items():
         algorithm = parse_algorithm(world.colour_models[role])
-        outlines = [Polygon(o) for o, _ in in_region(project_objects(frame, algorithm.detect(frame)), region)]
+        outlines = [
+            Polygon(o) for o, *_ in in_region(project_objects(frame, algorithm.detect(frame)), region)
+        ]
         for body in role_bodies:
             truth = Polygon(body.footprint())
             seen = [o for o in outlines if o.intersects(truth)]
@@ -211,7 +213,7 @@ def apriltag(ctx: Context, resolutions, repeats: int, renders: int) -> tuple[dic
 def tag_error(found, body) -> dict | None:
     """Centre (m) and heading (degrees) error of ``body``'s tag among ``found``; None when not found."""
     label = f'{body.tag.family}:{body.tag.id}'
-    outlines = [outline for outline, found_label in found if found_label == label]
+    outlines = [outline for outline, found_label, *_ in found if found_label == label]
     if not outlines:
         return None
     x, y, yaw = tag_pose(outlines[0])

@@ -2,7 +2,8 @@
 
 Each tag found is one :class:`PixelObject` labelled ``FAMILY:ID``, lying flat at its
 height, its four corners in a fixed order (corner 0 the printed top-left, then
-counter-clockwise seen from above); :func:`tag_pose` gives a tag's centre and heading from
+counter-clockwise seen from above), its confidence how clearly its cells read
+(:func:`decision_margin`); :func:`tag_pose` gives a tag's centre and heading from
 its outline on the floor. The syntax: docs/interface.md ("Algorithms"); corner order and
 refinement: docs/design.md ("The built-in algorithms").
 
@@ -16,6 +17,7 @@ TagQuery(family='tag36h11', ids=(3, 7), height=0.2)
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Mapping
@@ -27,7 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject
-from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES, dictionary
+from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES, cells, dictionary
 
 if TYPE_CHECKING:
     from drvs.vision.calibration import Intrinsics
@@ -39,6 +41,8 @@ ARUCO_TO_OUTLINE = (0, 3, 2, 1)
 """aruco's corners (top-left, top-right, bottom-right, bottom-left) in the outline's order."""
 OPENCV_OFFSET = 0.5
 """DRVS corner coordinates minus this are OpenCV pixel coordinates (as in :mod:`drvs.vision.optics`)."""
+MARGIN_CELL_PIXELS = 8
+"""Samples across one tag cell when :func:`decision_margin` reads the cells."""
 _ID = re.compile(r'[0-9]+')
 
 
@@ -175,6 +179,7 @@ class AprilTag(Algorithm):
                     label=label,
                     height=self.height_of(label, params),
                     keep_order=True,
+                    confidence=decision_margin(gray, corners, params.family, tag_id),
                 )
             )
         return found
@@ -231,6 +236,54 @@ def find_tags(
         refined = refine_tag_corners(gray, np.asarray(quad, float).reshape(4, 2), intrinsics)
         found.append((int(tag_id), np.asarray(refined, float)))
     return found
+
+
+def decision_margin(gray: np.ndarray, corners: np.ndarray, family: str, tag_id: int) -> float:
+    """How clearly a found tag's weakest cell reads as its code: the algorithm's confidence, 0-1.
+
+    The tag's black square (``corners`` as :func:`find_tags` gives them) is sampled
+    cell by cell (the middle half of each cell, through the homography of its corners);
+    the threshold lies midway between the mean grey of the cells that should be black
+    (the border and the 0 bits) and of those that should be white. A cell's margin is its
+    distance from the threshold towards the colour the code expects, as a share of half
+    that contrast (1: as clear as the tag's mean; 0: on the threshold; -1: the wrong
+    colour). The confidence is (1 + the smallest margin) / 2: 1 for a sharp, evenly lit
+    tag; down towards 0.5 as blur, too few pixels, glare, a shadow's edge or noise pull a
+    cell towards the threshold; below 0.5 only for a cell that reads wrong here (aruco
+    corrects no bit of the AprilTag families, so it read every bit of a tag it reports).
+    After AprilTag 3's ``decision_margin`` (OpenCV 4.6's aruco reports none).
+    """
+    import cv2
+
+    expected = _code(family, tag_id)
+    n = len(expected)
+    side = n * MARGIN_CELL_PIXELS
+    # The black square's corners to the edges of a side x side image (OpenCV pixel centres).
+    square = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float32) - 0.5
+    homography = cv2.getPerspectiveTransform(np.asarray(corners, np.float32), square)
+    warped = cv2.warpPerspective(
+        gray, homography, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    quarter = MARGIN_CELL_PIXELS // 4
+    grid = warped.reshape(n, MARGIN_CELL_PIXELS, n, MARGIN_CELL_PIXELS)
+    values = grid[:, quarter:-quarter, :, quarter:-quarter].mean(axis=(1, 3))
+    black, white = values[~expected].mean(), values[expected].mean()
+    contrast = white - black
+    if not contrast > 0:
+        return 0.0
+    margins = (values - (black + white) / 2.0) * np.where(expected, 1.0, -1.0) / (contrast / 2.0)
+    return float(np.clip((1.0 + margins.min()) / 2.0, 0.0, 1.0))
+
+
+@functools.lru_cache(maxsize=64)
+def _code(family: str, tag_id: int) -> np.ndarray:
+    """The tag's cells as printed, border included: (cells, cells) bool, True for white."""
+    import cv2
+
+    marker = cv2.aruco.drawMarker(dictionary(family), tag_id, cells(family))
+    code = marker > 127
+    code.flags.writeable = False
+    return code
 
 
 def _area(outline: np.ndarray) -> float:

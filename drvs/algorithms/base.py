@@ -45,6 +45,17 @@ class PixelObject:
     height: float | None = None
     keep_order: bool = False
     """True: the outline's vertex order means something (a tag's corner 0 first); keep it."""
+    confidence: float = 0.0
+    """How sure the algorithm is of the object, 0 to 1, in a sense each algorithm documents;
+    0: unknown (the default, for algorithms that do not say). Sent in DetectedObject.confidence."""
+
+    def __post_init__(self) -> None:
+        confidence = self.confidence
+        if isinstance(confidence, bool) or not isinstance(confidence, int | float | np.floating):
+            raise ValueError(f'PixelObject: confidence must be a number 0-1, got {confidence!r}')
+        if not 0.0 <= confidence <= 1.0:  # NaN too
+            raise ValueError(f'PixelObject: confidence must be in 0-1, got {confidence!r}')
+        object.__setattr__(self, 'confidence', float(confidence))
 
 
 class Algorithm:
@@ -82,7 +93,9 @@ def split_algorithm(text: object) -> tuple[str, str]:
     return name, params
 
 
-def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[PixelObject]:
+def outlines_of_mask(
+    mask: np.ndarray, min_area: float, epsilon: float, evidence: np.ndarray | None = None
+) -> list[PixelObject]:
     """Outer outlines of the connected regions of a binary mask, on the pixels' edges.
 
     Pixel (row v, column u) covers the square [u, u+1] x [v, v+1]. OpenCV traces
@@ -90,6 +103,11 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
     grown by half a pixel with mitred corners so a region's outline runs along
     its outer pixel edges and its area matches its pixel count. Pixels that touch
     only at a corner, or through a one-pixel-wide neck, make separate objects.
+
+    ``evidence``: a mask of the same shape (non-zero: a pixel that speaks for an object;
+    ``mask`` itself for how solidly each region is filled); each object's ``confidence`` is
+    then :func:`fill_fraction`, the share of the pixels inside its traced outer outline
+    (holes included) that are set in ``evidence``. None: confidence 0 (unknown).
     """
     import cv2
     from shapely.geometry import Polygon
@@ -100,6 +118,7 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     found = []
     for contour in contours:
+        confidence = 0.0 if evidence is None else fill_fraction(contour, evidence)
         centres = contour.reshape(-1, 2).astype(np.float64) + 0.5
         if len(centres) < 3:
             shape = Polygon(
@@ -119,5 +138,20 @@ def outlines_of_mask(mask: np.ndarray, min_area: float, epsilon: float) -> list[
             simple = part.simplify(epsilon, preserve_topology=True)
             ring = np.asarray(simple.exterior.coords)[:-1]
             if len(ring) >= 3:
-                found.append(PixelObject(ring, float(part.area)))
+                found.append(PixelObject(ring, float(part.area), confidence=confidence))
     return found
+
+
+def fill_fraction(contour: np.ndarray, evidence: np.ndarray) -> float:
+    """The share (0-1) of the pixels inside ``contour`` (an OpenCV contour through pixel centres,
+    its own pixels and any holes included) that are non-zero in ``evidence``."""
+    import cv2
+
+    left, top, width, height = cv2.boundingRect(contour)
+    inside = np.zeros((height, width), np.uint8)
+    cv2.drawContours(inside, [contour], 0, 255, thickness=cv2.FILLED, offset=(-left, -top))
+    total = cv2.countNonZero(inside)
+    if total == 0:
+        return 0.0
+    window = evidence[top : top + height, left : left + width]
+    return float(np.count_nonzero(window[inside > 0])) / total

@@ -154,7 +154,8 @@ class Motion(Algorithm):
                 if image is None:
                     return []
                 mask = self._subtractor.apply(image, learningRate=0)
-        return outlines_of_mask(self.clean(frame.rgb, mask), params.min_area, self.epsilon)
+        # confidence: the share of a cleaned region's pixels that the model itself found changed.
+        return outlines_of_mask(self.clean(frame.rgb, mask), params.min_area, self.epsilon, evidence=mask)
 
     def clean(self, rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """The foreground mask without speckle, holes between close parts, and ghosts on plain floors."""

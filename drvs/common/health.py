@@ -123,6 +123,8 @@ def server_health(
     rate_limited_callers: int,
     ejected: int,
     watches: int = 0,
+    left_out: Mapping[str, str] | None = None,
+    tracks: int = 0,
 ) -> Health:
     """The server's health from its registry, its forwarding pool and its refusals.
 
@@ -134,6 +136,9 @@ def server_health(
     :param rate_limited_callers: callers currently over their share.
     :param ejected: vision systems currently ejected after failed forwards.
     :param watches: watches standing now (a value only: any number is healthy).
+    :param left_out: vision systems the fusion stage leaves out (their outlines disagree with
+        their neighbours'), with why.
+    :param tracks: fused tracks now (a value only).
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -147,6 +152,8 @@ def server_health(
     period                                                           in the last period
     ``ejected > 0``                                         WARN     1 vision system ejected after
                                                                      failed forwards
+    ``left_out`` not empty                                  WARN     left out of fusion: /cam3/...:
+                                                                     its outlines are 0.8 m from ...
     none of these                                           OK       ok
     ======================================================  =======  ===============================
 
@@ -179,6 +186,10 @@ def server_health(
         problems.append((WARN, f'refused {", ".join(overload)} in the last period'))
     if ejected > 0:
         problems.append((WARN, f'{_count(ejected, "vision system")} ejected after failed forwards'))
+    left_out = left_out or {}
+    if left_out:
+        reasons = '; '.join(f'{name}: {why}' for name, why in sorted(left_out.items()))
+        problems.append((WARN, f'left out of fusion: {reasons}'))
     values = [
         ('registered vision systems', str(registered)),
         ('pending forwards', str(pending_forwards)),
@@ -186,6 +197,8 @@ def server_health(
         ('rate-limited callers', str(rate_limited_callers)),
         ('ejected vision systems', str(ejected)),
         ('watches', str(watches)),
+        ('fused tracks', str(tracks)),
+        ('left out of fusion', ', '.join(sorted(left_out)) or 'none'),
     ]
     for name in _refusal_names(refusals_by_status, refusals_recent):
         values.append((f'refused {name} (last period)', str(refusals_recent.get(name, 0))))

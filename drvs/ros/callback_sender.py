@@ -48,15 +48,18 @@ class CallbackSender:
         self.markers_pub = rospy.Publisher(markers_topic, MarkerArray, queue_size=10)
 
     def send(self, asked, vision_system: str, stamp: float, found) -> bool:
-        """Send ``found`` ((outline, label) pairs; [] for a watch's "all gone") seen in a frame of
-        ``stamp`` to the caller of ``asked`` (a :class:`drvs.vision.detections.Job` or a watch's
-        :class:`drvs.vision.watch_runner.Terms`); whether the call arrived."""
+        """Send ``found`` (:class:`drvs.vision.pipeline.Located`: outline, label, confidence; [] for a
+        watch's "all gone") seen in a frame of ``stamp`` to the caller of ``asked`` (a
+        :class:`drvs.vision.detections.Job` or a watch's :class:`drvs.vision.watch_runner.Terms`);
+        whether the call arrived."""
         request = CallbackCoordinatesRequest(
             algorithm=asked.algorithm.text,
             request_id=asked.request_id,
             vision_system=vision_system,
             stamp=rospy.Time.from_sec(stamp),
-            objects=[points_to_detected_object(outline, label) for outline, label in found],
+            objects=[
+                points_to_detected_object(outline, label, confidence) for outline, label, confidence in found
+            ],
         )
         buffer = io.BytesIO()
         request.serialize(buffer)  # once: counted, then sent as it is
@@ -75,7 +78,7 @@ class CallbackSender:
             self._count(callbacks=1, callback_bytes=len(buffer.getvalue()), objects=len(found))
             arrived = True
         if self.markers_pub.get_num_connections() > 0:  # after the callback: the robot waits, RViz can
-            outlines = [outline for outline, _ in found]
+            outlines = [outline for outline, *_ in found]
             self.markers_pub.publish(
                 detection_markers(vision_system, asked.algorithm.text, outlines, request.stamp)
             )

@@ -37,11 +37,17 @@ def bounds_of(points: Iterable[Sequence[float]]) -> Box:
     return (min(xs), min(ys), max(xs), max(ys))
 
 
-def points_to_detected_object(points: Sequence[Sequence[float]], label: str = '') -> DetectedObject:
-    """An outline (counter-clockwise on the floor) and its label -> drvs/DetectedObject with its
-    bounding box."""
+def points_to_detected_object(
+    points: Sequence[Sequence[float]], label: str = '', confidence: float = 0.0
+) -> DetectedObject:
+    """An outline (counter-clockwise on the floor), its label and the algorithm's confidence (0-1;
+    0: unknown) -> drvs/DetectedObject with its bounding box (the fusion stage's fields at their
+    defaults)."""
     return DetectedObject(
-        boundary=points_to_polygon(points), bounding_box=box_to_msg(bounds_of(points)), label=label
+        boundary=points_to_polygon(points),
+        bounding_box=box_to_msg(bounds_of(points)),
+        label=label,
+        confidence=confidence,
     )
 
 

@@ -24,16 +24,20 @@ from drvs.ros.messages import header, registry_to_msg
 from drvs.ros.node import NodeScaffold, internal_error, refusal_response
 from drvs.ros.server_checks import MasterChecks
 from drvs.ros.server_forwarding import Forwarder, Outgoing, ReplyFirstService, watch_service_of
+from drvs.ros.server_fusion import FusionGlue
 from drvs.server import answers
 from drvs.server.dispatch import Busy, Dispatcher
+from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
 from drvs.server.rate_limit import RateLimiter
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
+from drvs.server.tracker import TrackerSettings
 from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
 from drvs.srv import (
     DetectObjectBoundary,
+    DetectObjectBoundaryRequest,
     DetectObjectBoundaryResponse,
     RegisterVisionService,
     RegisterVisionServiceResponse,
@@ -58,6 +62,13 @@ STATS_FIELDS = (
     'forward_failures',
     'fallback_forwards',
     'watches',
+    'fused_requests',
+    'fused_callbacks',
+    'fused_late',
+    'fused_deliveries',
+    'fused_failures',
+    'fused_untracked',
+    'tracks',
 )
 """The counters of drvs/ServerStats (``watches``: the number standing)."""
 
@@ -79,7 +90,12 @@ class DrvsServer:
             max_ejection_time=settings.max_ejection_time,
         )
         self.forwarder = Forwarder(
-            settings.forward_timeout, self.registry, self.node.counters, self._removed, self._undelivered
+            settings.forward_timeout,
+            self.registry,
+            self.node.counters,
+            self._removed,
+            self._undelivered,
+            on_refused=self._fused_watch_refused,
         )
         self.dispatcher = Dispatcher(
             self.forwarder.send,
@@ -89,6 +105,24 @@ class DrvsServer:
             retry_after=settings.busy_retry_after,
             begin=self.forwarder.begin,
         )
+        stage = FusionStage(
+            rospy.get_time,
+            self._field_of_view,
+            FusionSettings(
+                deadline=settings.fused_deadline,
+                max_rounds=settings.max_fused_requests,
+                busy_retry_after=settings.busy_retry_after,
+                tracker=TrackerSettings(coast=settings.track_coast, max_tracks=settings.max_tracks),
+            ),
+        )
+        self.fusion = FusionGlue(
+            stage,
+            self._submit_delivery,
+            self.node.counters,
+            settings.forward_timeout,
+            settings.objects_period,
+        )
+        self.forwarder.deliver = self.fusion.deliver
         self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
         self.checks = MasterChecks(
             settings.check_timeout,
@@ -135,6 +169,8 @@ class DrvsServer:
         self.node.spawn(self._publish_loop, 'registry-publisher')
         self.node.spawn(self._watch_loop, 'watches')
         self.node.spawn(self._stats_loop, 'stats-publisher')
+        self.fusion.start()
+        self.node.spawn(lambda: self.fusion.loop(lambda: self.node.stopped), 'fusion')
         rospy.Service('~register_vision_service', RegisterVisionService, self.handle_register)
         ReplyFirstService(
             '~detect_object_boundary', DetectObjectBoundary, self.handle_detect, self._release_forwards
@@ -158,6 +194,7 @@ class DrvsServer:
 
     def stop(self) -> None:
         self.node.stop()
+        self.fusion.stop()
         self._watch_wake.set()
         with self._changed:
             self._changed.notify_all()
@@ -238,7 +275,17 @@ class DrvsServer:
     def _removed(self, entry: Registration) -> None:
         """A vision system unregistered, or removed after failed forwards."""
         self._close(entry)
+        self._forget(entry)
         self._mark_changed()
+
+    def _forget(self, entry: Registration) -> None:
+        """The fusion stage drops what it holds of a vision system that left: its tracks coast."""
+        with self.fusion.lock:
+            self.fusion.stage.forget(entry.service_name)
+
+    def _field_of_view(self, service: str):
+        entry = self.registry.get(service)
+        return None if entry is None else entry.field_of_view
 
     def _check_callback(self, service: str) -> None:
         """Check the callback service, unless verified lately (:meth:`MasterChecks.callback`)."""
@@ -267,6 +314,8 @@ class DrvsServer:
         algorithm, region = self._request_fields(request)
         self._check_callback(request.callback_service)
         names = self.registry.match(region, algorithm)
+        if request.fused:
+            return self._detect_fused(request, algorithm, region, names)
         if not names:
             return self._sent_to_none(region, algorithm)
         # The request itself is forwarded: every field unchanged (the caller's connection
@@ -289,6 +338,77 @@ class DrvsServer:
                 self.settings.busy_retry_after,
             )
         return self._accepted(len(accepted), len(skipped))
+
+    def _detect_fused(
+        self, request, algorithm: str, region, names: list[str]
+    ) -> DetectObjectBoundaryResponse:
+        """A fused request: a round of the fusion stage, forwarded with its callback service and id;
+        the robot is called back once, by the fusion stage (docs/interface.md, "Fused mode")."""
+        answer = self._sent_to_none(region, algorithm) if not names else None  # may refuse UNSUPPORTED
+        stage = self.fusion.stage
+        with self.fusion.lock:
+            wire_id = stage.open_round(
+                _caller(request),
+                request.request_id,
+                request.algorithm,
+                region,
+                request.callback_service,
+                names,
+            )
+        self.node.counters.add(fused_requests=1)
+        if answer is not None:
+            self.fusion.wake.set()  # answered at once: no vision system covers the region
+            return answer
+        forward = DetectObjectBoundaryRequest(
+            algorithm=request.algorithm,
+            region_of_interest=request.region_of_interest,
+            callback_service=self.fusion.service_name,
+            request_id=wire_id,
+            fused=True,  # the vision system calls back even when it finds nothing
+        )
+
+        def settled(vision_system: str, reply) -> None:
+            with self.fusion.lock:
+                if reply is None:
+                    stage.forward_answer(wire_id, vision_system, None)
+                else:
+                    stage.forward_answer(wire_id, vision_system, reply.status, reply.message)
+            self.fusion.wake.set()
+
+        try:
+            accepted, skipped = self.dispatcher.submit(names, Outgoing(forward, settled), wake=False)
+        except Busy:
+            with self.fusion.lock:
+                stage.cancel_round(wire_id)
+            raise
+        if not accepted:
+            with self.fusion.lock:
+                stage.cancel_round(wire_id)
+            raise answers.busy_everywhere(
+                len(names),
+                algorithm,
+                self.settings.max_pending_per_vision_system,
+                self.settings.busy_retry_after,
+            )
+        with self.fusion.lock:
+            for vision_system in skipped:
+                stage.forward_answer(wire_id, vision_system, None)
+        self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
+        return self._accepted(len(accepted), len(skipped))
+
+    def _submit_delivery(self, callback_service: str, delivery: Delivery) -> bool:
+        """Queue a fused callback for a robot on the forwarding workers; False when there is no room."""
+        try:
+            accepted, _ = self.dispatcher.submit([callback_service], delivery)
+        except Busy:
+            return False
+        return bool(accepted)
+
+    def _fused_watch_refused(self, forward: Forward, answer) -> None:
+        """A vision system refused a fused watch's forward: the robot hears of it in its next callback."""
+        _, wire_id = forward.watch.forwarded()
+        with self.fusion.lock:
+            self.fusion.stage.watch_refused(wire_id, forward.vision_system, answer.status, answer.message)
 
     def _accepted(self, forwarded: int, skipped: int) -> DetectObjectBoundaryResponse:
         """The acknowledgement of a request sent to ``forwarded`` vision systems (``skipped`` busy),
@@ -350,6 +470,17 @@ class DrvsServer:
         except ValidationError as error:
             raise Refusal(INVALID, str(error)) from None
         algorithm, region = self._request_fields(request) if stands else ('', (0.0, 0.0, 0.0, 0.0))
+        key = (caller, request.request_id)
+        forward_as = None
+        with self.fusion.lock:
+            if stands and request.fused:
+                period = max(request.period, self.settings.min_watch_period)
+                wire_id = self.fusion.stage.set_watch(
+                    key, request.algorithm, region, request.callback_service, period, request.changes_only
+                )
+                forward_as = (self.fusion.service_name, wire_id)
+            else:
+                self.fusion.stage.drop_watch(key)
         if stands:
             self._check_callback(request.callback_service)
             with self._watch_lock:
@@ -370,6 +501,7 @@ class DrvsServer:
                     request.period,
                     request.duration,
                     request.changes_only,
+                    forward_as,
                 )
             except ValidationError as error:
                 raise Refusal(INVALID, str(error)) from None
@@ -414,6 +546,7 @@ class DrvsServer:
         for entry in self.registry.expire():
             rospy.loginfo('lease of %s expired: removed', entry.service_name)
             self._close(entry)
+            self._forget(entry)
             self._mark_changed()
 
     def _mark_changed(self) -> None:
@@ -429,13 +562,18 @@ class DrvsServer:
             with self._watch_lock:
                 self._submit(self.watches.sync())
                 due = self.watches.next_due()
+                fused = {w.key: self.watches.serving(w.key) for w in self.watches.standing() if w.forward_as}
+            with self.fusion.lock:
+                self.fusion.stage.keep_watches(fused)
             self.forwarder.watch_clients.expire()
             wait = WATCH_WAIT if due is None else min(max(due - rospy.get_time(), 0.001), WATCH_WAIT)
             self._watch_wake.wait(wait)
 
     def stats_msg(self) -> ServerStats | None:
         """The counters (drvs/ServerStats, stamped with ROS time) if they changed since the last call."""
-        self.node.counters.set(watches=len(self.watches))
+        with self.fusion.lock:
+            tracks = self.fusion.stage.track_count()
+        self.node.counters.set(watches=len(self.watches), tracks=tracks)
         counts = self.node.counters.take_changed()
         return None if counts is None else ServerStats(header=header(rospy.get_time()), **counts)
 
@@ -468,6 +606,8 @@ class DrvsServer:
     def health(self) -> Health:
         """The server's health now, for ``/diagnostics``; the refusals counted since the last call."""
         refusals = self.node.refusals
+        with self.fusion.lock:
+            left_out, tracks = self.fusion.stage.flagged(), self.fusion.stage.track_count()
         recent = refusals.take_period()  # first: the totals then include every recent one
         return server_health(
             registered=len(self.registry),
@@ -478,6 +618,8 @@ class DrvsServer:
             rate_limited_callers=self.rate_limiter.limited(),
             ejected=self.registry.ejected(),
             watches=len(self.watches),
+            left_out=left_out,
+            tracks=tracks,
         )
 
     def registry_msg(self) -> RegistryMsg:

@@ -21,6 +21,7 @@ from drvs.common.status import name
 from drvs.ros.conversions import box_to_msg
 from drvs.ros.node import debug_logged
 from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient
+from drvs.server.fusion import Delivery
 from drvs.server.registry import Registration, Registry
 from drvs.server.watch_table import ONE_SHOT, WITHDRAWAL, Forward, Watch
 from drvs.srv import (
@@ -70,10 +71,11 @@ class ReplyFirstService(rospy.Service):
 class Outgoing:
     """A robot's request on its way to the vision systems: serialised once, for all of them."""
 
-    __slots__ = ('request', '_data')
+    __slots__ = ('request', 'on_answer', '_data')
 
-    def __init__(self, request: DetectObjectBoundaryRequest):
+    def __init__(self, request: DetectObjectBoundaryRequest, on_answer=None):
         self.request = request
+        self.on_answer = on_answer  # called with (vision system, its answer or None) when settled
         self._data: bytes | None = None
 
     def serialized(self) -> bytes:
@@ -94,6 +96,9 @@ class Forwarder:
         ``fallback_forwards``, ``forward_failures``).
     :param on_removed: called with the entry of a vision system removed after failed forwards.
     :param on_undelivered: called with a watch forward that failed (the watch table sends it again).
+    :param deliver: sends the fusion stage's callback to a robot (items of type
+        :class:`~drvs.server.fusion.Delivery`, queued for the robot's callback service).
+    :param on_refused: called with a fused watch's forward and the vision system's refusal.
     """
 
     def __init__(
@@ -103,7 +108,11 @@ class Forwarder:
         counters: Counters,
         on_removed: Callable[[Registration], None],
         on_undelivered: Callable[[Forward], None],
+        deliver: Callable[[Delivery], None] | None = None,
+        on_refused: Callable[[Forward, object], None] | None = None,
     ):
+        self.deliver = deliver
+        self.on_refused = on_refused
         self.forward_timeout = forward_timeout
         self.registry = registry
         self.counters = counters
@@ -132,7 +141,7 @@ class Forwarder:
         has it: the handler's after its reply, or the one that saw the previous forward end); the
         reply loop settles it. False for what a worker must do: watch forwards, one-shots, and a
         request to a vision system without an open connection."""
-        if isinstance(item, Forward):
+        if isinstance(item, Forward | Delivery):
             return False
         entry = self.registry.get(destination)
         if entry is None or entry.client is None:
@@ -140,9 +149,11 @@ class Forwarder:
         client, started = entry.client, time.monotonic()
 
         def settled(answer, error) -> None:
-            self._settle(
+            answer = self._settle(
                 destination, client, f'forward of {item.request.request_id!r}', started, answer, error
             )
+            if item.on_answer is not None:
+                item.on_answer(destination, answer)
             done()
 
         if not client.start(item.request, self.replies, settled, serialized=item.serialized()):
@@ -151,7 +162,12 @@ class Forwarder:
         return True
 
     def send(self, destination: str, item) -> None:
-        """Send one queued item on a worker, blocking: a robot's request, or a watch's :class:`Forward`."""
+        """Send one queued item on a worker, blocking: a robot's request, a watch's :class:`Forward`,
+        or a fused callback to a robot (:class:`~drvs.server.fusion.Delivery`)."""
+        if isinstance(item, Delivery):
+            if self.deliver is not None:
+                self.deliver(item)
+            return
         if isinstance(item, Forward) and item.kind != ONE_SHOT:
             self._send_watch(destination, item)
             return
@@ -161,11 +177,15 @@ class Forwarder:
         if isinstance(item, Forward):
             self.counters.add(forwards=1, fallback_forwards=1)
             what = f'one-shot of watch {item.watch.request_id!r}'
-            self._call(destination, entry.client, one_shot_request(item.watch), what)
+            answer = self._call(destination, entry.client, one_shot_request(item.watch), what)
+            if answer is not None and not answer.accepted and item.watch.forward_as and self.on_refused:
+                self.on_refused(item, answer)
         else:
             self.counters.add(forwards=1)
             what = f'forward of {item.request.request_id!r}'
-            self._call(destination, entry.client, item.request, what, item.serialized())
+            answer = self._call(destination, entry.client, item.request, what, item.serialized())
+            if item.on_answer is not None:
+                item.on_answer(destination, answer)
 
     def _send_watch(self, destination: str, forward: Forward) -> None:
         service = forward.vision_system
@@ -178,6 +198,8 @@ class Forwarder:
             self.on_undelivered(forward)
         elif not answer.accepted:
             rospy.logwarn('%s refused by %s (%s): %s', what, destination, name(answer.status), answer.message)
+            if forward.watch.forward_as and self.on_refused is not None:
+                self.on_refused(forward, answer)
 
     def _call(self, service: str, client: ServiceClient, request, what: str, serialized: bytes | None = None):
         """Send ``request`` (its bytes ``serialized`` if known) through ``client``, blocking; its answer,
@@ -238,23 +260,27 @@ def watch_service_of(service: str) -> str:
 
 def one_shot_request(watch: Watch) -> DetectObjectBoundaryRequest:
     """The DetectObjectBoundary request that serves ``watch`` once, to a vision system without watches."""
+    callback_service, request_id = watch.forwarded()
     return DetectObjectBoundaryRequest(
         algorithm=watch.algorithm,
         region_of_interest=box_to_msg(watch.region),
-        callback_service=watch.callback_service,
-        request_id=watch.request_id,
+        callback_service=callback_service,
+        request_id=request_id,
+        fused=watch.forward_as is not None,
     )
 
 
 def watch_request(forward: Forward) -> WatchObjectBoundaryRequest:
     """The WatchObjectBoundary forward of ``forward`` (a new watch, a renewal or a withdrawal)."""
     watch = forward.watch
+    callback_service, request_id = watch.forwarded()
     return WatchObjectBoundaryRequest(
         algorithm=watch.algorithm,
         region_of_interest=box_to_msg(watch.region),
-        callback_service=watch.callback_service,
-        request_id=watch.request_id,
+        callback_service=callback_service,
+        request_id=request_id,
         period=watch.period,
         duration=forward.duration,
-        changes_only=watch.changes_only,
+        changes_only=watch.changes_only and watch.forward_as is None,  # fusion wants every frame
+        fused=watch.forward_as is not None,
     )

@@ -181,7 +181,7 @@ class VisionSystemNode:
         self._count_algorithm(request.algorithm)
         if algorithm.algorithm.streaming:
             self._streaming_until = arrival + self.params.motion_window
-        job = Job(algorithm, region, request.callback_service, request.request_id, arrival)
+        job = Job(algorithm, region, request.callback_service, request.request_id, arrival, request.fused)
         try:
             self._jobs.put_nowait(job)
         except queue.Full:
@@ -241,6 +241,7 @@ class VisionSystemNode:
                 request.duration,
                 request.changes_only,
                 self.algorithms,
+                request.fused,
             )
             if terms is None:
                 cancelled = self.watches.cancel((request.callback_service, request.request_id))
@@ -296,7 +297,7 @@ class VisionSystemNode:
         if job.algorithm.algorithm.streaming:
             job.algorithm.algorithm.observe(frame)  # the model must have seen the frame it judges
         found = in_region(self._detections.on_floor(frame, job.algorithm), job.region)
-        outlines = [outline for outline, _ in found]
+        outlines = [outline for outline, *_ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
         if debug_logged():
@@ -307,7 +308,7 @@ class VisionSystemNode:
                 len(outlines),
                 ' (cached frame)' if reused else '',
             )
-        if found:
+        if found or job.fused:  # the fusion stage hears "nothing here" too: its round need not wait
             self.callbacks.send(job, self.service_name, frame.stamp, found)
 
     def _stream_tick(self) -> None:

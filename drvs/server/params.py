@@ -69,6 +69,26 @@ class ServerSettings(Settings):
     max_watches: int = param(
         1000, 'watches standing at once; beyond it new watches are refused `BUSY`', check=at_least(1)
     )
+    fused_deadline: float = param(
+        2.0,
+        'a fused request is answered once every vision system asked has answered, or after this long',
+        unit='s',
+        check=POSITIVE,
+    )
+    max_fused_requests: int = param(
+        1000, 'fused requests waiting for their vision systems; beyond it refused `BUSY`', check=at_least(1)
+    )
+    max_tracks: int = param(
+        1000,
+        'tracks per algorithm string; outlines beyond it are left untracked (counted in `~stats`)',
+        check=at_least(1),
+    )
+    track_coast: float = param(
+        2.0, 'a track no camera sees is predicted this long, then reported gone', unit='s', check=POSITIVE
+    )
+    objects_period: float = param(
+        0.1, 'least time between two `~objects` messages (the fused tracks)', unit='s', check=POSITIVE
+    )
 
     def __post_init__(self):
         super().__post_init__()

@@ -70,10 +70,17 @@ class Watch:
     duration: float  # granted, seconds
     changes_only: bool
     expires_at: float  # on the table's clock
+    forward_as: tuple[str, str] | None = (
+        None  # a fused watch: (callback_service, request_id) of the fusion stage
+    )
 
     @property
     def key(self) -> Key:
         return (self.caller, self.request_id)
+
+    def forwarded(self) -> tuple[str, str]:
+        """The (callback_service, request_id) the vision systems are asked to call back with."""
+        return self.forward_as or (self.callback_service, self.request_id)
 
 
 @dataclass(frozen=True)
@@ -149,6 +156,10 @@ class WatchTable:
     def get(self, key: Key) -> Watch | None:
         return self._watches.get(key)
 
+    def standing(self) -> list[Watch]:
+        """Every watch standing now."""
+        return list(self._watches.values())
+
     def serving(self, key: Key) -> list[str]:
         """The vision systems serving the watch ``key`` now (none if it does not stand), sorted."""
         return sorted(self._serving.get(key, ()))
@@ -164,10 +175,13 @@ class WatchTable:
         period: float,
         duration: float,
         changes_only: bool,
+        forward_as: tuple[str, str] | None = None,
     ) -> Answer:
         """Start, renew or (``duration`` 0) cancel the watch (``caller``, ``request_id``).
 
         The fields are checked already (:func:`watch_terms`, the server's request checks).
+        ``forward_as``: a fused watch, forwarded with the fusion stage's callback service and
+        request id instead of the caller's (:mod:`drvs.server.fusion`).
 
         :raises ValidationError: ``request_id``: another caller's watch has the same
             ``callback_service`` and ``request_id``.
@@ -206,9 +220,10 @@ class WatchTable:
             granted,
             bool(changes_only),
             now + granted,
+            forward_as,
         )
         forwards = []
-        renewal = old is not None and old.callback_service == callback_service
+        renewal = old is not None and old.forwarded() == watch.forwarded()
         if old is not None and not renewal:  # known to the vision systems under its old callback
             forwards += self._drop(key)
         self._watches[key] = watch

@@ -22,7 +22,7 @@ import rospy
 from drvs.algorithms import AlgorithmError, default_algorithms, parse_algorithm, split_algorithm
 from drvs.common.retry import retry_delay
 from drvs.common.settings import Settings
-from drvs.common.status import ACCEPTED, is_temporary
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED, is_temporary
 from drvs.common.status import name as status_name
 from drvs.common.validation import ValidationError, region_of_interest
 from drvs.msg import BoundingBox
@@ -42,12 +42,15 @@ EXIT_CODES = {
     NOTHING_FOUND: 'vision systems were asked, but none found anything within --wait',
     USAGE: 'bad options',
     NOT_COVERED: 'no vision system covers the region (none was asked)',
-    REFUSED: "the request was refused (its status and the server's message are printed)",
+    REFUSED: "the request was refused (its status and the server's message are printed); with --fused, "
+    'also when every vision system asked refused it',
     NO_SERVER: 'no DRVS server answered within --timeout',
     NO_MASTER: 'no ROS master answered within --master-timeout',
     INTERRUPTED: 'interrupted (Ctrl-C)',
 }
 """Exit code -> what it means, as ``--help`` lists it."""
+FUSED_WAIT = 5.0
+"""Seconds ``--fused`` waits at least: the server's ``~fused_deadline`` (2 s) and the delivery."""
 
 
 @dataclass(frozen=True)
@@ -109,6 +112,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         default=5.0,
         help='seconds to wait for the ROS master before giving up (default 5)',
     )
+    parser.add_argument(
+        '--fused',
+        action='store_true',
+        help='one callback from the fusion stage: every object once, with track ids and velocities '
+        '(waits for it: --wait is then at least 5 s)',
+    )
     parser.add_argument('--server', default='/drvs/detect_object_boundary', help='the DRVS server service')
     args = parser.parse_args(argv)
     try:  # the server's own rules: a refusal it would send costs nothing here
@@ -135,7 +144,17 @@ def format_callback(request) -> str:
         lines.append(
             f'  [{i}]{label} bounds x {box.min_x:.3f}..{box.max_x:.3f}, y {box.min_y:.3f}..{box.max_y:.3f}'
         )
+        if detected.track_id:
+            velocity = detected.velocity
+            lines.append(
+                f'      track #{detected.track_id}, velocity ({velocity.x:.2f}, {velocity.y:.2f}) m/s'
+                f'{", stationary" if detected.stationary else ""}, confidence {detected.confidence:.2f}, '
+                f'seen by {", ".join(detected.seen_by) or "none this time (coasting)"}'
+            )
         lines.append(f'      outline {points}')
+    if request.fused:
+        outcome = 'OK' if request.status == request.OK else status_name(request.status)
+        lines.insert(1, f'  fused: {outcome}: {request.message}')
     return '\n'.join(lines)
 
 
@@ -193,6 +212,7 @@ def _ask(args: argparse.Namespace) -> int:
         region_of_interest=BoundingBox(*args.roi),
         callback_service=callback,
         request_id=request_id,
+        fused=args.fused,
     )
     try:
         reply = send_with_retries(args.server, request, args.timeout)
@@ -215,16 +235,24 @@ def _ask(args: argparse.Namespace) -> int:
         )
         return NOT_COVERED
     answered = found = 0
-    deadline = rospy.get_time() + args.wait
+    wait = max(args.wait, FUSED_WAIT) if args.fused else args.wait
+    deadline = rospy.get_time() + wait
     while (left := deadline - rospy.get_time()) > 0:
         try:
             answer = answers.get(timeout=left)
         except queue.Empty:
             break
         print(format_callback(answer))
+        if answer.fused:  # the one answer of a fused request
+            if answer.status in (INVALID, UNSUPPORTED):
+                print(f'drvs_ask: refused by the vision systems: {answer.message}', file=sys.stderr)
+                return REFUSED
+            found += len(answer.objects)
+            answered = len(answer.answered)
+            break
         answered += 1
         found += len(answer.objects)
-    print(f'{answered} of {reply.vision_systems} vision system(s) called back within {args.wait:.1f} s')
+    print(f'{answered} of {reply.vision_systems} vision system(s) called back within {wait:.1f} s')
     if found:
         return FOUND
     print(

@@ -34,6 +34,7 @@ class Job:
     callback_service: str
     request_id: str
     arrival: float
+    fused: bool = False  # for the server's fusion stage: call back even when nothing is found
 
 
 class FrameDetections:

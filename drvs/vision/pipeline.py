@@ -40,10 +40,22 @@ class FloorObject(NamedTuple):
     label: str
     bounds: tuple[float, float, float, float]  # min_x, min_y, max_x, max_y
     outline: Outline  # the whole object as reported: ``ordered``, or ring(shape)
+    confidence: float = 0.0  # the algorithm's (PixelObject.confidence); 0: unknown
 
     @classmethod
-    def of(cls, shape: Polygon, ordered: list | None, label: str) -> FloorObject:
-        return cls(shape, ordered, label, shape.bounds, ordered if ordered is not None else ring(shape))
+    def of(cls, shape: Polygon, ordered: list | None, label: str, confidence: float = 0.0) -> FloorObject:
+        outline = ordered if ordered is not None else ring(shape)
+        return cls(shape, ordered, label, shape.bounds, outline, confidence)
+
+
+class Located(NamedTuple):
+    """An object as a request gets it (:func:`in_region`): its outline on the floor in ``map``
+    (clipped to the region, counter-clockwise; a tag's corners whole, in their order), its label
+    and the algorithm's confidence (0-1, 0: unknown; an object clipped keeps its whole one)."""
+
+    outline: Outline
+    label: str
+    confidence: float = 0.0
 
 
 def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
@@ -167,17 +179,19 @@ def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[Floo
             points = floor_points(frame, pixel_object)
             if len(points) == len(pixel_object.outline):
                 corners = [(float(x), float(y)) for x, y, _ in points]
-                found.append(FloorObject.of(Polygon(corners), corners, pixel_object.label))
+                found.append(
+                    FloorObject.of(Polygon(corners), corners, pixel_object.label, pixel_object.confidence)
+                )
             continue
         for floor_shape in project_outline(frame, pixel_object):
-            found.append(FloorObject.of(floor_shape, None, pixel_object.label))
+            found.append(FloorObject.of(floor_shape, None, pixel_object.label, pixel_object.confidence))
     return found
 
 
 def in_region(
     objects: list[FloorObject], region_of_interest: tuple[float, float, float, float]
-) -> list[tuple[Outline, str]]:
-    """(outline, label) of each of :func:`on_floor`'s ``objects`` that intersects
+) -> list[Located]:
+    """(outline, label, confidence) of each of :func:`on_floor`'s ``objects`` that intersects
     ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
 
     An object whose vertex order means something (a tag, corner 0 first) is reported
@@ -186,29 +200,29 @@ def in_region(
     low_x, low_y, high_x, high_y = region_of_interest
     region = None
     found = []
-    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline in objects:
+    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline, confidence in objects:
         # Bounds first: an object wholly outside or wholly inside the region needs no GEOS
         # operation (the intersection was most of a one-camera request's time).
         if max_x < low_x or min_x > high_x or max_y < low_y or min_y > high_y:
             continue
         if low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y:
-            found.append((outline, label))
+            found.append(Located(outline, label, confidence))
             continue
         if region is None:
             region = box(*region_of_interest)
         if ordered is not None:
             if shape.intersects(region):
-                found.append((outline, label))
+                found.append(Located(outline, label, confidence))
             continue
         for part in _polygons(shape.intersection(region)):
-            found.append((ring(part), label))
+            found.append(Located(ring(part), label, confidence))
     return found
 
 
 def locate_labelled(
     frame: Frame, algorithm: Parsed, region_of_interest: tuple[float, float, float, float]
-) -> list[tuple[Outline, str]]:
-    """(outline, label) on the floor (``map``, counter-clockwise) of each object ``algorithm``
+) -> list[Located]:
+    """(outline, label, confidence) on the floor (``map``, counter-clockwise) of each object ``algorithm``
     (a :class:`drvs.algorithms.Parsed`) finds in ``frame`` that intersects
     ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it (:func:`in_region`)."""
     return in_region(on_floor(frame, algorithm), region_of_interest)
@@ -218,7 +232,7 @@ def locate_objects(
     frame: Frame, algorithm: Parsed, region_of_interest: tuple[float, float, float, float]
 ) -> list[Outline]:
     """The outlines of :func:`locate_labelled`, without labels."""
-    return [outline for outline, _ in locate_labelled(frame, algorithm, region_of_interest)]
+    return [found.outline for found in locate_labelled(frame, algorithm, region_of_interest)]
 
 
 def draw_detections(

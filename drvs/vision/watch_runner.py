@@ -1,7 +1,8 @@
 """A vision system's standing requests ("watches"): which to evaluate when, and what to send back.
 
 Watches keyed by (``callback_service``, ``request_id``), granted and expired; one frame
-for every watch due; with ``changes_only``, a callback only when the outlines changed.
+for every watch due; with ``changes_only``, a callback only when the outlines or labels
+changed (not the confidence).
 No ROS and no clock of its own (calls take ``now``); one lock, ``WatchRunner._lock``. The
 service: docs/nodes/vision_system.md; the rules and why: docs/design.md ("Vision systems").
 
@@ -39,8 +40,9 @@ logger = logging.getLogger('rosout.' + __name__)
 __all__ = ['Grant', 'Terms', 'WatchRunner', 'outline_distance', 'outlines_changed', 'parse_watch']
 
 Box = tuple[float, float, float, float]
-Found = Sequence[tuple[Sequence[Sequence[float]], str]]
-"""What an evaluation found: (outline, label) pairs, each outline a ring of (x, y) in metres."""
+Found = Sequence[tuple[Sequence[Sequence[float]], str] | tuple[Sequence[Sequence[float]], str, float]]
+"""What an evaluation found: (outline, label[, confidence]) tuples, each outline a ring of (x, y) in
+metres (:class:`drvs.vision.pipeline.Located`); changes are judged on outlines and labels only."""
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,7 @@ class Terms:
     region: Box
     period: float  # seconds between evaluations (the granted one, once standing)
     changes_only: bool
+    fused: bool = False  # for the server's fusion stage: call back every period, even with nothing found
 
     @property
     def key(self) -> tuple[str, str]:
@@ -86,6 +89,7 @@ def parse_watch(
     duration: float,
     changes_only: bool,
     algorithms: AlgorithmSet | None = None,
+    fused: bool = False,
 ) -> Terms | None:
     """Check a WatchObjectBoundary request; its terms, or None for a cancel (``duration`` 0).
 
@@ -108,7 +112,7 @@ def parse_watch(
     if not watch_terms(request_id, period, duration):
         return None
     parsed, region = request_fields(algorithm, box, callback_service, algorithms)
-    return Terms(callback_service, request_id, parsed, region, float(period), bool(changes_only))
+    return Terms(callback_service, request_id, parsed, region, float(period), bool(changes_only), bool(fused))
 
 
 class WatchRunner:
@@ -197,7 +201,7 @@ class WatchRunner:
             if watch is None or watch.terms is not terms:
                 return None
             if not terms.changes_only:
-                return found or None
+                return found if found or terms.fused else None
             if found:
                 if watch.full_report or not watch.reported or self.changed(watch.reported, found):
                     watch.reported, watch.full_report = found, False
@@ -268,7 +272,9 @@ def outlines_changed(old: Found, new: Found, tolerance: float) -> bool:
     farther than ``tolerance`` (:func:`outline_distance`) from the object of ``old``
     with the same label it is paired with. Pairs are made nearest first, so the
     order in which objects are listed does not matter. A labelled object is one the
-    algorithm identifies (a tag): its corners are compared in order.
+    algorithm identifies (a tag): its corners are compared in order. A confidence
+    (a third member) is not compared: it varies from frame to frame with the object
+    standing still.
 
     >>> square = [(0, 0), (1, 0), (1, 1), (0, 1)]
     >>> moved = [(x + 0.1, y) for x, y in square]
@@ -277,11 +283,11 @@ def outlines_changed(old: Found, new: Found, tolerance: float) -> bool:
     >>> outlines_changed([(square, '')], [(moved, '')], 0.03)
     True
     """
-    if len(old) != len(new) or sorted(label for _, label in old) != sorted(label for _, label in new):
+    if len(old) != len(new) or sorted(found[1] for found in old) != sorted(found[1] for found in new):
         return True
-    for label in {label for _, label in new}:
-        olds = [outline for outline, lab in old if lab == label]
-        news = [outline for outline, lab in new if lab == label]
+    for label in {found[1] for found in new}:
+        olds = [found[0] for found in old if found[1] == label]
+        news = [found[0] for found in new if found[1] == label]
         pairs = sorted(
             (outline_distance(o, n, ordered=bool(label)), i, j)
             for i, o in enumerate(olds)

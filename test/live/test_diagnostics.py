@@ -62,6 +62,11 @@ SERVER = dict(
         ({'ejected': 1}, WARN, '1 vision system ejected after failed forwards'),
         ({'ejected': 2}, WARN, '2 vision systems ejected after failed forwards'),
         (
+            {'left_out': {'/cam3/detect_object_boundary': 'its outlines are 0.8 m from its neighbours'}},
+            WARN,
+            'left out of fusion: /cam3/detect_object_boundary: its outlines are 0.8 m from its neighbours',
+        ),
+        (
             {'registered': 0, 'pending_forwards': 100, 'refusals_recent': {'RATE_LIMITED': 5}},
             ERROR,
             'forward queue full: refusing BUSY (100 of 100 pending); no vision system registered; '
@@ -85,6 +90,8 @@ def test_server_values_name_every_refusal_status():
         ('rate-limited callers', '0'),
         ('ejected vision systems', '0'),
         ('watches', '0'),
+        ('fused tracks', '0'),
+        ('left out of fusion', 'none'),
         ('refused INVALID (last period)', '0'),
         ('refused INVALID (since start)', '0'),
         ('refused BUSY (last period)', '1'),

@@ -61,6 +61,23 @@ def test_drvs_ask_prints_the_acknowledgement_and_the_outlines(drvs: RosHarness):
     assert lines[-1] == '1 of 1 vision system(s) called back within 2.0 s'
 
 
+def test_drvs_ask_fused_prints_one_answer_with_a_track(drvs: RosHarness):
+    result = drvs.run(f'drvs_ask --fused {STATION} --roi 0 0 4 3 --wait 5')
+    assert result.returncode == FOUND, result.stdout + result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[1].startswith('/drvs (frame at ') and lines[1].endswith('): 1 object(s)')
+    assert lines[2] == '  fused: OK: 1 of 1 answered'
+    assert re.fullmatch(
+        r'      track #\d+, velocity \(-?0\.\d\d, -?0\.\d\d\) m/s.*seen by /vs2/detect_object_boundary',
+        lines[4],
+    )
+    assert lines[-1] == '1 of 1 vision system(s) called back within 5.0 s'
+    # Nothing there: the camera says so (fused), so the one answer comes at once, empty.
+    empty = drvs.run(f'drvs_ask --fused {STATION} --roi 0 0 1 1 --wait 5')
+    assert empty.returncode == NOTHING_FOUND, empty.stdout + empty.stderr
+    assert '/drvs (frame at ' in empty.stdout and ': 0 object(s)' in empty.stdout
+
+
 def test_drvs_ask_refuses_a_bad_algorithm_before_asking(ros: RosHarness):
     result = ros.run("drvs_ask 'colour:1,2'")
     assert result.returncode == USAGE

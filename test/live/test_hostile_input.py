@@ -745,7 +745,12 @@ def test_random_requests_get_ack_or_invalid(ros, fuzz_graph, count, request):
                 else:
                     algorithm, box, callback = fuzz.algorithm(), fuzz.box(), fuzz.name([CALLBACK])
                 request_id = fuzz.request_id(index)
-                call = DetectObjectBoundary._request_class(algorithm, BoundingBox(*box), callback, request_id)
+                call = DetectObjectBoundary._request_class(
+                    algorithm=algorithm,
+                    region_of_interest=BoundingBox(*box),
+                    callback_service=callback,
+                    request_id=request_id,
+                )
                 client = detect_clients[caller]
             else:
                 caller = '/mover' if well_formed else fuzz.rng.choice(list(register_clients) + ['/mover'] * 2)
@@ -857,6 +862,7 @@ def detect_body(algorithm: bytes = b'colour:0,0,150,80,80,255', request_id: byte
         + struct.pack('<4d', 0.5, 0.5, 1.0, 1.0)
         + framed(CALLBACK.encode())
         + framed(request_id)
+        + b'\x00'  # fused: false
     )
 
 
@@ -997,7 +1003,10 @@ def test_garbage_on_the_wire_leaves_the_server_serving(ros, wire_graph, request)
         try:
             answer = client.call(
                 DetectObjectBoundary._request_class(
-                    'colour:0,0,150,80,80,255', BoundingBox(0.5, 0.5, 1.0, 1.0), CALLBACK, f'after {name}'
+                    algorithm='colour:0,0,150,80,80,255',
+                    region_of_interest=BoundingBox(0.5, 0.5, 1.0, 1.0),
+                    callback_service=CALLBACK,
+                    request_id=f'after {name}',
                 )
             )
         finally:
@@ -1045,7 +1054,10 @@ def test_a_silent_connection_does_not_block_new_ones(ros, wire_graph):
         try:
             answer = client.call(
                 DetectObjectBoundary._request_class(
-                    'colour:0,0,150,80,80,255', BoundingBox(0.5, 0.5, 1.0, 1.0), CALLBACK, 'while silent'
+                    algorithm='colour:0,0,150,80,80,255',
+                    region_of_interest=BoundingBox(0.5, 0.5, 1.0, 1.0),
+                    callback_service=CALLBACK,
+                    request_id='while silent',
                 )
             )
         finally:

@@ -125,6 +125,7 @@ def test_dark_outlines_the_regions_darker_than_the_level_on_their_pixel_edges(da
     (found,) = dark.detect(Frame(image, None, None, 0.0), dark.parse('100'))
     assert found.label == 'dark'
     assert (found.area, found.height, found.keep_order) == (400.0, None, False)
+    assert found.confidence == 0.0  # a plugin that does not say: unknown
     assert Polygon(found.outline).bounds == (10.0, 20.0, 30.0, 40.0)
     assert len(dark.detect(Frame(image, None, None, 0.0), dark.parse('151'))) == 2
     assert dark.detect(Frame(image, None, None, 0.0), dark.parse('60')) == []  # below, not at

@@ -55,7 +55,12 @@ def registration(service_name, field_of_view):
 
 
 def detect_request(box=(0.5, 0.5, 1.0, 1.0), request_id='r', callback=CALLBACK):
-    return DetectObjectBoundary._request_class(COLOUR, BoundingBox(*box), callback, request_id)
+    return DetectObjectBoundary._request_class(
+        algorithm=COLOUR,
+        region_of_interest=BoundingBox(*box),
+        callback_service=callback,
+        request_id=request_id,
+    )
 
 
 def forwarded_ids(graph, name):

@@ -64,7 +64,12 @@ class Graph:
         return self.records(name, 'forward')
 
     def detect(self, box, request_id='r1', algorithm=COLOUR, callback=CALLBACK):
-        request = DetectObjectBoundary._request_class(algorithm, BoundingBox(*box), callback, request_id)
+        request = DetectObjectBoundary._request_class(
+            algorithm=algorithm,
+            region_of_interest=BoundingBox(*box),
+            callback_service=callback,
+            request_id=request_id,
+        )
         return self.detect_client.call(request)
 
     def register(self, service_name, points):

@@ -9,7 +9,8 @@ simulates a slow or hung robot).
 Each line: service (the one called), received (``time.monotonic()`` on arrival:
 the test process's clock on Linux), algorithm, request_id, vision_system, stamp
 (float seconds), caller, objects (a list of outlines, each a list of [x, y]),
-bounding_boxes.
+bounding_boxes, and the fused mode's fields: fused, status, message, answered, refused,
+missing, gone, and per object track_ids, velocities, seen_by, labels.
 """
 
 import json
@@ -51,6 +52,17 @@ def main():
                     [o.bounding_box.min_x, o.bounding_box.min_y, o.bounding_box.max_x, o.bounding_box.max_y]
                     for o in request.objects
                 ],
+                'fused': request.fused,
+                'status': request.status,
+                'message': request.message,
+                'answered': list(request.answered),
+                'refused': list(request.refused),
+                'missing': list(request.missing),
+                'gone': list(request.gone),
+                'track_ids': [o.track_id for o in request.objects],
+                'velocities': [[o.velocity.x, o.velocity.y] for o in request.objects],
+                'seen_by': [list(o.seen_by) for o in request.objects],
+                'labels': [o.label for o in request.objects],
             }
             with lock, open(output, 'a') as handle_:
                 handle_.write(json.dumps(record) + '\n')

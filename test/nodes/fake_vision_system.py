@@ -27,6 +27,14 @@ Parameters:
   the parameter is also checked this often (0.2 s when 0).
 - ``~hang`` (seconds, default 0): hold every request this long before answering.
 - ``~watch`` (bool, default false): serve ``~watch_object_boundary`` too, before registering.
+- ``~objects`` (YAML list of outlines, each a list of [x, y], default ``[]``): with ``~answer``,
+  what it "sees"; each moves at ``~velocity`` ([vx, vy] m/s, default [0, 0]) from the node's start.
+- ``~answer`` (bool, default false): call the request's callback service back with the objects
+  whose centre lies in the region (a request once; a watch every period until it ends).
+- ``~stamp_offset`` (seconds, default 0): stamp callbacks this far off the clock (a camera
+  host's clock skew).
+- ``~refuse`` (status code, default 0): refuse every request and watch with this status and
+  ``~refuse_message``.
 """
 
 import json
@@ -36,8 +44,9 @@ import time
 import rospy
 import yaml
 
-from drvs.ros.conversions import points_to_polygon
+from drvs.ros.conversions import points_to_detected_object, points_to_polygon
 from drvs.srv import (
+    CallbackCoordinates,
     DetectObjectBoundary,
     DetectObjectBoundaryResponse,
     RegisterVisionService,
@@ -76,20 +85,71 @@ def main():
             'caller': request._connection_header.get('callerid', ''),
         }
 
+    own = rospy.resolve_name('~detect_object_boundary')
+    answering = rospy.get_param('~answer', False)
+    outlines = list_param('~objects')
+    velocity = list_param('~velocity') or [0.0, 0.0]
+    offset = float(rospy.get_param('~stamp_offset', 0.0))
+    refuse = int(rospy.get_param('~refuse', 0))
+    refuse_message = rospy.get_param('~refuse_message', 'refused by the fake')
+    started = rospy.get_time()
+    watches = {}  # (caller, request_id) -> end time
+
+    def seen(request):
+        """The objects at this moment whose centre lies in the request's region, and the stamp."""
+        now = rospy.get_time()
+        box, dt = request.region_of_interest, now - started
+        found = []
+        for outline in outlines:
+            moved = [[x + velocity[0] * dt, y + velocity[1] * dt] for x, y in outline]
+            cx = sum(p[0] for p in moved) / len(moved)
+            cy = sum(p[1] for p in moved) / len(moved)
+            if box.min_x <= cx <= box.max_x and box.min_y <= cy <= box.max_y:
+                found.append(points_to_detected_object(moved))
+        return found, rospy.Time.from_sec(now + offset)
+
+    def call_back(request):
+        found, stamp = seen(request)
+        try:
+            rospy.ServiceProxy(request.callback_service, CallbackCoordinates)(
+                algorithm=request.algorithm,
+                request_id=request.request_id,
+                vision_system=own,
+                stamp=stamp,
+                objects=found,
+            )
+        except (rospy.ServiceException, rospy.ROSException) as error:
+            rospy.logwarn('callback failed: %s', error)
+
+    def serve_watch(request, key):
+        while not rospy.is_shutdown() and time.monotonic() < watches.get(key, 0.0):
+            call_back(request)
+            time.sleep(max(request.period, 0.05))
+
     def handle(request):
         record(fields('forward', request))
         if hang > 0:
             time.sleep(hang)
+        if refuse:
+            return DetectObjectBoundaryResponse(accepted=False, status=refuse, message=refuse_message)
+        if answering:
+            threading.Thread(target=call_back, args=(request,), daemon=True).start()
         return DetectObjectBoundaryResponse(accepted=True, message='fake', vision_systems=1)
 
     def handle_watch(request):
         terms = {'period': request.period, 'duration': request.duration, 'changes_only': request.changes_only}
         record({**fields('watch', request), **terms})
+        if refuse:
+            return WatchObjectBoundaryResponse(accepted=False, status=refuse, message=refuse_message)
+        key = (request._connection_header.get('callerid', ''), request.request_id)
+        serving = watches.get(key, 0.0) > time.monotonic()
+        watches[key] = time.monotonic() + request.duration
+        if answering and request.duration > 0 and not serving:
+            threading.Thread(target=serve_watch, args=(request, key), daemon=True).start()
         return WatchObjectBoundaryResponse(
             accepted=True, message='fake', vision_systems=1, period=request.period, duration=request.duration
         )
 
-    own = rospy.resolve_name('~detect_object_boundary')
     rospy.Service(own, DetectObjectBoundary, handle)
     if rospy.get_param('~watch', False):
         rospy.Service(rospy.resolve_name('~watch_object_boundary'), WatchObjectBoundary, handle_watch)

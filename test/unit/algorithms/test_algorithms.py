@@ -1,10 +1,12 @@
 """The shared algorithm definitions: parsing, refusals, colour segmentation on drawn images."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
 
-from drvs.algorithms import MAX_LENGTH, AlgorithmError, ColourModel, parse_algorithm
+from drvs.algorithms import MAX_LENGTH, AlgorithmError, ColourModel, PixelObject, parse_algorithm
 
 
 def test_colour_parses_and_formats_back():
@@ -71,3 +73,19 @@ def test_colour_finds_each_region_with_edge_exact_outlines():
 
 def test_colour_finds_nothing_in_an_empty_image():
     assert ColourModel.parse('0,0,150,80,80,255').detect(np.full((50, 50, 3), 255, np.uint8)) == []
+
+
+def test_a_pixel_objects_confidence_defaults_to_unknown_and_must_lie_in_0_to_1():
+    outline = np.array([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)])
+    assert PixelObject(outline, 0.5).confidence == 0.0
+    assert PixelObject(outline, 0.5, confidence=np.float32(0.25)).confidence == 0.25
+    for bad, problem in (
+        (1.5, 'must be in 0-1, got 1.5'),
+        (-0.1, 'must be in 0-1, got -0.1'),
+        (math.nan, 'must be in 0-1, got nan'),
+        ('high', "must be a number 0-1, got 'high'"),
+        (True, 'must be a number 0-1, got True'),
+    ):
+        with pytest.raises(ValueError) as error:
+            PixelObject(outline, 0.5, confidence=bad)
+        assert str(error.value) == f'PixelObject: confidence {problem}'

@@ -12,7 +12,7 @@ import yaml
 import drvs.algorithms.apriltag
 import drvs.algorithms.tag_images
 from drvs.algorithms import AlgorithmError, AlgorithmSet, parse_algorithm
-from drvs.algorithms.apriltag import AprilTag, TagQuery, tag_pose
+from drvs.algorithms.apriltag import AprilTag, TagQuery, decision_margin, tag_pose
 from drvs.algorithms.tag_images import FAMILIES, cells, dictionary, tag_image
 from drvs.sim.scene import Scene
 from drvs.sim.world import Tag, WorldError
@@ -400,7 +400,7 @@ def rendered(tmp_path_factory):
 
 
 def pose_errors(found, label, truth):
-    (outline,) = [outline for outline, found_label in found if found_label == label]
+    (outline,) = [item.outline for item in found if item.label == label]
     assert len(outline) == 4
     x, y, yaw = tag_pose(outline)
     return math.hypot(x - truth[0], y - truth[1]), abs(
@@ -415,12 +415,13 @@ def test_a_rendered_tag_gives_the_robot_pose_within_1_cm_and_2_degrees(rendered,
     heights = {world.robot.tag.label: world.robot.size[2], world.station.tag.label: world.station.size[2]}
     algorithms = AlgorithmSet([AprilTag(heights=heights)])
     found = locate_labelled(frame, parse_algorithm('apriltag:tag36h11:3', algorithms), REGION)
-    assert [label for _, label in found] == ['tag36h11:3']
+    assert [item.label for item in found] == ['tag36h11:3']
     distance, heading = pose_errors(found, 'tag36h11:3', truth)
     assert distance <= 0.01 and heading <= 2.0, (distance, heading)
     # The station's tag too, at its own height and yaw.
     found = locate_labelled(frame, parse_algorithm('apriltag:tag36h11', algorithms), REGION)
-    assert sorted(label for _, label in found) == ['tag36h11:3', 'tag36h11:5']
+    assert sorted(item.label for item in found) == ['tag36h11:3', 'tag36h11:5']
+    assert all(0.95 <= item.confidence <= 1.0 for item in found)  # sharp renders: clear cells
     distance, heading = pose_errors(found, 'tag36h11:5', (*STATION['position'], STATION['yaw']))
     assert distance <= 0.01 and heading <= 2.0, (distance, heading)
 
@@ -499,3 +500,59 @@ def test_bad_tags_are_refused(tmp_path, changes, message):
     with pytest.raises(WorldError) as error:
         load_world(path)
     assert str(error.value) == f'{path}: {message}'
+
+
+# -- confidence: how clearly the weakest cell reads ----------------------------------------------
+
+
+def degraded(frame, blur=0.0):
+    rgb = cv2.GaussianBlur(frame.rgb, (0, 0), blur) if blur else frame.rgb
+    return Frame(rgb=rgb, depth=None, camera=frame.camera, stamp=0.0)
+
+
+def confidences(frame, algorithm='apriltag:tag36h11'):
+    return {obj.label: obj.confidence for obj in parse(algorithm).detect(frame)}
+
+
+def test_a_sharp_tag_has_confidence_1(drawn):
+    assert confidences(drawn) == {'tag36h11:3': 1.0, 'tag36h11:7': 1.0}
+    assert confidences(drawn, 'apriltag:tag25h9') == {'tag25h9:2': 1.0}
+
+
+def test_blur_and_fewer_pixels_lower_the_confidence(drawn):
+    sharp, blurred, more = (confidences(degraded(drawn, blur))['tag36h11:3'] for blur in (0.0, 2.0, 3.0))
+    assert 0.5 < more < blurred < sharp == 1.0
+    large, small = (
+        confidences(drawn_frame([('tag36h11', 3, square((150, 150), half, 0.3))]))['tag36h11:3']
+        for half in (20, 7)
+    )
+    assert 0.5 < small < large == 1.0
+
+
+def flipped_tag(cell=None):
+    """A grey image of tag36h11:3 upright, 12 pixels a cell, with data cell (row, column) ``cell``
+    painted the other colour; and its black square's corners in OpenCV coordinates (aruco order)."""
+    image = tag_image('tag36h11', 3, cell_pixels=12)  # a quiet zone one cell wide, then the border
+    if cell is not None:
+        top, left = (cell[0] + 2) * 12, (cell[1] + 2) * 12
+        image[top : top + 12, left : left + 12] = 255 - image[top : top + 12, left : left + 12]
+    grey = np.full((300, 400), 255, np.uint8)
+    grey[100 : 100 + image.shape[0], 150 : 150 + image.shape[1]] = image
+    u0, v0, side = 162 - 0.5, 112 - 0.5, 8 * 12
+    return grey, np.array([(u0, v0), (u0 + side, v0), (u0 + side, v0 + side), (u0, v0 + side)])
+
+
+def test_a_cell_read_wrong_takes_the_confidence_below_one_half():
+    grey, corners = flipped_tag()
+    assert decision_margin(grey, corners, 'tag36h11', 3) == 1.0
+    grey, corners = flipped_tag(cell=(3, 3))
+    assert decision_margin(grey, corners, 'tag36h11', 3) < 0.5
+    assert decision_margin(grey, corners, 'tag36h11', 4) == 0.0  # another tag's code: many cells wrong
+    # aruco corrects no bit of the AprilTag families: it does not report such a tag at all.
+    frame = Frame(rgb=np.dstack([grey] * 3), depth=None, camera=drawn_frame([]).camera, stamp=0.0)
+    assert confidences(frame) == {}
+
+
+def test_a_tag_without_contrast_has_confidence_0():
+    grey, corners = flipped_tag()
+    assert decision_margin(np.full_like(grey, 128), corners, 'tag36h11', 3) == 0.0

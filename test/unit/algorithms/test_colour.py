@@ -84,3 +84,48 @@ def test_thresholds_are_inclusive(colour, inside):
 
 def test_an_empty_mask_has_no_outlines():
     assert outlines_of_mask(np.zeros((10, 10), np.uint8), 1, 1.0) == []
+
+
+# -- confidence: how solidly a region is filled --------------------------------------------------
+
+
+def speckled(share, seed=0):
+    """A 60 x 60 blue square whose pixels are each white with probability ``share``; its edge stays blue."""
+    image = np.full((100, 100, 3), 255, np.uint8)
+    image[20:80, 20:80] = BLUE
+    holes = np.random.default_rng(seed).random((58, 58)) < share
+    image[21:79, 21:79][holes] = 255
+    return image
+
+
+@pytest.mark.parametrize(
+    'image, confidence',
+    [
+        (draw(SHAPES[1].corners), 1.0),  # a solid region, however it is turned
+        (speckled(0.0), 1.0),
+        (speckled(0.2), pytest.approx(1 - 0.2 * 58**2 / 60**2, abs=0.02)),
+        (speckled(0.5), pytest.approx(1 - 0.5 * 58**2 / 60**2, abs=0.02)),
+    ],
+)
+def test_confidence_is_the_share_of_the_outlines_pixels_that_match(image, confidence):
+    (found,) = MODEL.detect(image, min_area=20)
+    assert found.confidence == confidence
+
+
+def test_a_hole_lowers_the_confidence_of_its_object():
+    image = np.full((80, 80, 3), 255, np.uint8)
+    image[10:70, 10:70] = BLUE
+    image[30:50, 30:50] = 255
+    image[35:45, 35:45] = BLUE  # an island in the hole: matching pixels inside the outline
+    (found,) = MODEL.detect(image)
+    assert found.confidence == pytest.approx((3600 - 400 + 100) / 3600)
+
+
+def test_without_evidence_outlines_of_mask_leaves_the_confidence_unknown():
+    mask = np.zeros((40, 40), np.uint8)
+    mask[5:30, 5:30] = 1
+    mask[10:20, 10:20] = 0
+    (found,) = outlines_of_mask(mask, 1, 1.0)
+    assert found.confidence == 0.0
+    (found,) = outlines_of_mask(mask, 1, 1.0, evidence=mask)
+    assert found.confidence == pytest.approx(525 / 625)

@@ -338,3 +338,27 @@ def test_a_walking_human_is_reported_within_5cm_of_its_footprint_centre(walk):
         errors.append(nearest.centroid.distance(Point(truth)))
         assert nearest.area == pytest.approx(0.09, abs=0.01)  # its 0.3 x 0.3 m footprint
     assert max(errors) <= 0.05, errors
+
+
+# -- confidence: the share of a region's pixels the model found changed ----------------------------
+
+
+def test_a_solid_moving_rectangle_has_confidence_1_and_a_speckled_one_less():
+    """Speckled: a tenth of the rectangle's pixels show the floor; the cleaning fills the holes."""
+    background = BACKGROUNDS[1]
+    solid, speckled = Motion(), Motion()
+    start = learnt(solid, background)
+    learnt(speckled, background)
+    holes = np.random.default_rng(3).random(RECT[::-1]) < 0.1
+    for i in range(4):
+        frame = drawn(background, [rect_at(i)], stamp=(start + i) * 0.2)
+        solid.observe(frame)
+        (found,) = solid.detect(frame, MotionParams())
+        assert found.confidence == 1.0, f'frame {i}'
+        u, v, w, h = rect_at(i)
+        rgb = frame.rgb.copy()
+        rgb[v : v + h, u : u + w][holes] = background.image[v : v + h, u : u + w][holes]
+        frame = Frame(rgb=rgb, depth=None, camera=None, stamp=frame.stamp)
+        speckled.observe(frame)
+        (found,) = speckled.detect(frame, MotionParams())
+        assert 0.8 <= found.confidence <= 0.97, f'frame {i}'

@@ -34,7 +34,16 @@ def square(x, y, side=0.5):
         (BoundingBox, ['min_x', 'min_y', 'max_x', 'max_y'], ['float64'] * 4),
         (
             DetectedObject,
-            ['boundary', 'bounding_box', 'label', 'track_id', 'confidence', 'velocity', 'stationary', 'seen_by'],
+            [
+                'boundary',
+                'bounding_box',
+                'label',
+                'track_id',
+                'confidence',
+                'velocity',
+                'stationary',
+                'seen_by',
+            ],
             [
                 'geometry_msgs/Polygon',
                 'drvs/BoundingBox',

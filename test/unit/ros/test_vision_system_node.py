@@ -1,9 +1,11 @@
 """The vision_system node's wiring, without a master: the server's answers to its registrations
-reach the health report and ``~stats``, and a bug in a handler is answered with a status.
+reach the health report and ``~stats``, a bug in a handler is answered with a status, and the
+callbacks carry the algorithm's confidence.
 
 When to register is :mod:`drvs.vision.registration`'s (test/unit/vision/test_registration.py).
 """
 
+import numpy as np
 import pytest
 
 from drvs.common.health import ERROR, OK, WARN
@@ -11,13 +13,18 @@ from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE
 from drvs.ros.service_client import ServiceCallError
 from drvs.ros.vision_system import VisionSystemNode
 from drvs.srv import (
+    CallbackCoordinatesRequest,
     DetectObjectBoundaryRequest,
     RegisterVisionServiceResponse,
     WatchObjectBoundaryRequest,
 )
 from drvs.testing import ManualClock
+from drvs.vision.camera import PinholeCamera
+from drvs.vision.detections import Job
+from drvs.vision.frame import Frame
 from drvs.vision.params import VisionSystemParams
 from drvs.vision.registration import Registration
+from drvs.vision.watch_runner import parse_watch
 
 FLOOR = [(0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (0.0, 1.0)]
 
@@ -151,3 +158,58 @@ def test_stats_count_accepted_requests_per_algorithm_string_up_to_a_bound(clock)
     assert len(counts) == 65 and counts['colour:0'] == 2 and counts['other'] == 6
     node._publish_stats()
     assert len(node.stats_pub.messages) == 2  # nothing changed since
+
+
+class CallbackClients:
+    """The sender's connections to the robots' callback services: one client for all that keeps
+    each request as the robot would receive it (deserialised from the bytes sent)."""
+
+    def __init__(self):
+        self.requests = []
+
+    def get(self, service):
+        return self
+
+    def call(self, request, serialized):
+        self.requests.append(CallbackCoordinatesRequest().deserialize(serialized))
+
+    def expire(self):
+        pass
+
+
+BLUE = 'colour:0,0,150,80,80,255'
+
+
+def square_with_a_hole(hole):
+    """A frame straight down on a blue 40 x 40 pixel square with a white ``hole`` x ``hole`` one in it."""
+    rgb = np.full((300, 400, 3), 255, np.uint8)
+    rgb[130:170, 180:220] = (0, 0, 200)
+    rgb[150 - hole // 2 : 150 + (hole + 1) // 2, 200 - hole // 2 : 200 + (hole + 1) // 2] = 255
+    camera = PinholeCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), fov_deg=60, width=400, height=300)
+    return Frame(rgb=rgb, depth=None, camera=camera, stamp=100.0)
+
+
+def test_callbacks_carry_the_algorithms_confidence_and_changes_only_ignores_it(clock):
+    node = vision_system(clock)
+    clients = CallbackClients()
+    node.callbacks._clients, node.callbacks.markers_pub = clients, Publisher()
+    frames = [square_with_a_hole(20)]  # colour's confidence: 1200 of the 1600 pixels blue
+    node.source.frame = lambda arrival: (frames[-1], False)
+    job = Job(node.algorithms.parse(BLUE), (-5.0, -5.0, 5.0, 5.0), '/robot/callback', 'once', clock())
+    node._process(job)
+    (request,) = clients.requests
+    assert [o.confidence for o in request.objects] == [0.75]
+
+    terms = parse_watch(BLUE, (-5, -5, 5, 5), '/robot/callback', 'watch', 0.5, 10.0, True, node.algorithms)
+    node.watches.stand(terms, 10.0, clock())
+    node._evaluate_watches(node.watches.due(clock()), clock())
+    assert [o.confidence for o in clients.requests[-1].objects] == [0.75]
+    frames.append(square_with_a_hole(10))  # the same outline, more solidly filled
+    clock.now += 0.5
+    node._evaluate_watches(node.watches.due(clock()), clock())
+    assert len(clients.requests) == 2  # changes_only: the outline stood still; no callback
+    frames.append(square_with_a_hole(0))
+    node.watches.callback_failed(terms)  # the robot may hold anything: the next evaluation reports
+    clock.now += 0.5
+    node._evaluate_watches(node.watches.due(clock()), clock())
+    assert [o.confidence for o in clients.requests[-1].objects] == [1.0]

@@ -8,12 +8,12 @@ import pytest
 import yaml
 from shapely.geometry import Polygon, box
 
-from drvs.algorithms import parse_algorithm
+from drvs.algorithms import PixelObject, parse_algorithm
 from drvs.sim.scene import TINY_RENDERER_SAMPLE, Scene
 from drvs.sim.world_file import load_world
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.frame import Frame
-from drvs.vision.pipeline import FrameCache, draw_detections, locate_objects
+from drvs.vision.pipeline import FrameCache, draw_detections, in_region, locate_objects, project_objects
 
 ACCURACY_WORLD = 'test/worlds/accuracy.yaml'
 WHOLE_FLOOR = (0.0, 0.0, 6.0, 4.0)
@@ -177,3 +177,22 @@ def test_a_frame_is_reused_within_max_frame_age_of_its_capture(later, renders, r
     second, _ = cache.get(clock['now'])
     assert cache.renders == renders
     assert second.stamp == pytest.approx(100.0 if renders == 1 else 100.0 + render_time + later)
+
+
+def test_the_algorithms_confidence_reaches_every_object_a_request_gets_clipped_or_not():
+    camera = PinholeCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), fov_deg=60, width=400, height=300)
+    frame = Frame(rgb=np.zeros((300, 400, 3), np.uint8), depth=None, camera=camera, stamp=0.0)
+    square = np.array([(150.0, 100.0), (250.0, 100.0), (250.0, 200.0), (150.0, 200.0)])
+    pixel_objects = [
+        PixelObject(square, 1e4, confidence=0.6),
+        PixelObject(square + 10, 1e4, label='tag36h11:1', height=0.0, keep_order=True, confidence=0.9),
+        PixelObject(square - 10, 1e4),  # an algorithm that does not say
+    ]
+    objects = project_objects(frame, pixel_objects)
+    assert [o.confidence for o in objects] == [0.6, 0.9, 0.0]
+    whole = in_region(objects, (-5.0, -5.0, 5.0, 5.0))
+    assert [(o.label, o.confidence) for o in whole] == [('', 0.6), ('tag36h11:1', 0.9), ('', 0.0)]
+    min_x, min_y, max_x, max_y = objects[0].bounds
+    clipped = in_region(objects, (-5.0, -5.0, (min_x + max_x) / 2, 5.0))  # half of each
+    assert [(o.label, o.confidence) for o in clipped] == [('', 0.6), ('tag36h11:1', 0.9), ('', 0.0)]
+    assert Polygon(clipped[0].outline).area == pytest.approx(objects[0].shape.area / 2)

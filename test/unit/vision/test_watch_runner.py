@@ -82,6 +82,15 @@ def test_without_changes_only_it_calls_back_every_period_something_is_found(runn
     assert evaluate_due(runner, 3.0, {'w': []}) == {'w': None}
 
 
+def test_a_fused_watch_calls_back_every_period_even_with_nothing_found(runner):
+    fused = parse_watch(COLOUR, FLOOR, CALLBACK, 'f', 1.0, 30.0, False, fused=True)
+    runner.stand(fused, 60.0, now=0.0)
+    crate = [(square(1, 1), '')]
+    assert evaluate_due(runner, 0.0, {'f': crate}) == {'f': crate}
+    assert evaluate_due(runner, 1.0, {'f': []}) == {'f': []}  # the fusion stage hears "nothing here"
+    assert evaluate_due(runner, 2.0, {'f': []}) == {'f': []}
+
+
 def test_changes_only_calls_back_on_changes_beyond_the_tolerance(runner):
     runner.stand(terms('w', changes_only=True), 60.0, now=0.0)
     crate = [(square(1, 1), '')]
@@ -270,3 +279,14 @@ def test_tags_compare_their_corners_in_order():
     assert not outlines_changed([(tag, '')], [(turned, '')], 0.03)
     assert outlines_changed([(tag, 'tag36h11:3')], [(turned, 'tag36h11:3')], 0.03)
     assert outlines_changed([(tag, 'tag36h11:3')], [(tag, 'tag36h11:4')], 0.03)  # another tag
+
+
+def test_changes_only_is_not_fooled_by_confidence_jitter(runner):
+    """The confidence (a third member) varies from frame to frame; only outlines and labels count."""
+    runner.stand(terms(changes_only=True), 30.0, now=0.0)
+    first = [(square(1, 1), '', 0.9)]
+    assert evaluate_due(runner, 0.0, {'w': first}) == {'w': first}
+    assert evaluate_due(runner, 1.0, {'w': [(square(1, 1), '', 0.4)]}) == {'w': None}
+    assert not outlines_changed([(square(1, 1), '', 0.9)], [(square(1, 1), '')], 0.03)
+    moved = [(square(1.1, 1), '', 0.4)]
+    assert evaluate_due(runner, 2.0, {'w': moved}) == {'w': moved}
