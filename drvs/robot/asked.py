@@ -2,14 +2,14 @@
 are in: the box a plan must stay inside before the robot commits to it.
 
 A call DRVS accepted for a region counts as answered once every vision system it reached called
-back since, or ``settle`` seconds after it was accepted (a ``changes_only`` watch that finds
-nothing calls back nothing). Until then the robot knows the part of the new region that its
-previous answered region covered. No ROS here; the rule: docs/nodes/blind_robot.md ("Asking
-before committing to a plan").
+back with frames taken since the call was sent, or ``settle`` seconds after it was accepted (a
+``changes_only`` watch that finds nothing calls back nothing). Until then the robot knows the part
+of the new region that its previous answered region covered. No ROS here; the rule:
+docs/nodes/blind_robot.md ("Asking before committing to a plan").
 
 >>> floor = AskedFloor(['obstacle', 'human'], settle=0.5)
->>> floor.accepted('obstacle', (0, 0, 4, 3), now=1.0, vision_systems=2)
->>> floor.accepted('human', (0, 0, 5, 3), now=1.0, vision_systems=2)
+>>> floor.accepted('obstacle', (0, 0, 4, 3), sent=0.9, now=1.0, vision_systems=2)
+>>> floor.accepted('human', (0, 0, 5, 3), sent=0.9, now=1.0, vision_systems=2)
 >>> floor.known(1.2) is NOTHING
 True
 >>> floor.known(1.5)  # both answered: the floor both roles were asked about
@@ -49,6 +49,7 @@ def inside(inner: Box, outer: Box) -> bool:
 @dataclass
 class _Asked:
     region: Box
+    sent: float  # when the call was sent: frames taken since answer it
     since: float  # when DRVS accepted the call
     vision_systems: int  # how many it reached
     heard: set[str] = field(default_factory=set)  # those that called back since
@@ -69,21 +70,21 @@ class AskedFloor:
         self._answered: dict[str, Box] = dict.fromkeys(roles, NOTHING)
         self._waiting: dict[str, list[_Asked]] = {role: [] for role in self._answered}
 
-    def accepted(self, role: str, region: Box, now: float, vision_systems: int) -> None:
-        """DRVS accepted a call for ``role`` over ``region``, forwarded to ``vision_systems``
-        (none: nothing there to hear, it is answered at once)."""
+    def accepted(self, role: str, region: Box, sent: float, now: float, vision_systems: int) -> None:
+        """DRVS accepted at ``now`` a call for ``role`` over ``region`` sent at ``sent``, forwarded to
+        ``vision_systems`` (none: nothing there to hear, it is answered at once)."""
         if role not in self._answered:
             return
-        asked = _Asked(tuple(region), now, vision_systems)  # type: ignore[arg-type]
+        asked = _Asked(tuple(region), sent, now, vision_systems)  # type: ignore[arg-type]
         if vision_systems <= 0:
             self._answer(role, asked)
         else:
             self._waiting[role].append(asked)
 
-    def heard(self, role: str, vision_system: str, now: float) -> None:
-        """``vision_system`` called back about ``role`` at ``now``."""
+    def heard(self, role: str, vision_system: str, stamp: float) -> None:
+        """``vision_system`` called back about ``role`` with frames taken at ``stamp``."""
         for asked in self._waiting.get(role, ()):
-            if asked.since <= now:
+            if asked.sent <= stamp:
                 asked.heard.add(vision_system)
         for asked in reversed(self._waiting.get(role, ())):
             if len(asked.heard) >= asked.vision_systems:

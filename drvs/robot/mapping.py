@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from shapely.geometry import Point, Polygon
 from shapely.ops import unary_union
 
-from drvs.robot.occupancy import Cell, CostGrid, GridSpec, MapPublishing, ObstacleMemory
+from drvs.robot.occupancy import Cell, CostGrid, GridSpec, MapPublishing, ObstacleMemory, Source
 from drvs.robot.perception import (
     FLEET_ROLE,
     STATIC_ROLES,
@@ -47,6 +47,10 @@ MAX_CELLS = 40_000
 (134,400 cells) holds the control loop, and with it the callbacks, for seconds on a loaded machine."""
 BODY_MARGIN = 0.08
 """Metres around the robot's body (placed by its tag) within which moving regions are the robot itself."""
+XY = tuple[float, float]
+MOVER_AREA = 0.3
+"""Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
+(it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
 OWN_TRAIL = 4.0
 """Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
 
@@ -122,6 +126,8 @@ class MapBuilder:
     :param resolution: the cell size (default :func:`grid_resolution`).
     :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
     :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
+    :param merge: whether a role's outlines from every source are merged into objects
+        (:func:`merge_outlines`); not when DRVS fuses them (one object each already).
     """
 
     def __init__(
@@ -136,6 +142,7 @@ class MapBuilder:
         resolution: float | None = None,
         clearance: float = 0.0,
         horizon: float = 0.0,
+        merge: bool = True,
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
@@ -147,11 +154,16 @@ class MapBuilder:
         self.clearance, self.horizon = clearance, horizon
         self.tracker = MoverTracker()
         self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
-        self._fleet_heard = (
-            -math.inf
-        )  # when a vision system last reported the fleet role (under _memory_lock)
-        self._memory_lock = threading.Lock()  # guards _memory: callbacks observe, the control loop reads
+        self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
+        self.merge = merge
+        self._memory_lock = (
+            threading.Lock()
+        )  # guards the fields below: callbacks observe, the control loop reads
         self._memory = ObstacleMemory(ttl)
+        self._velocities: dict[
+            Source, dict[int, Point]
+        ] = {}  # source -> id(outline) -> its velocity, if given
+        self._fleet_heard = -math.inf  # when a vision system last reported the fleet role
 
     def _kept_clear(self, mover: Mover) -> Polygon:
         """The floor another robot holds: its outline, swept over the horizon, grown by the clearance."""
@@ -165,21 +177,27 @@ class MapBuilder:
         outlines: Sequence[Polygon],
         now: float,
         region: Box | None = None,
+        velocities: Sequence[XY | None] | None = None,
     ) -> None:
         """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while) in
         ``region``, the region the robot asked it about: a static role's outlines it reported
-        before outside that region stay."""
+        before outside that region stay. ``velocities``: each outline's, when DRVS tracked them."""
         region = region if role in STATIC_ROLES else None
+        source = (role, vision_system)
         with self._memory_lock:
             if role == FLEET_ROLE:
                 self._fleet_heard = max(self._fleet_heard, now)
-            self._memory.observe((role, vision_system), outlines, now, linger=self.linger, region=region)
+            if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
+                given = zip(outlines, velocities or (), strict=False)
+                self._velocities[source] = {id(o): v for o, v in given if v is not None}
+            self._memory.observe(source, outlines, now, linger=self.linger, region=region)
 
     def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its
         trail, its body) and its ``station``."""
         with self._memory_lock:
             sources = self._memory.current(now)
+            velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
             fleet_heard = self._fleet_heard
         bodies = [f.outline for f in (fix, station) if f is not None]
         body = own_body(fix, self.robot_size)
@@ -188,14 +206,24 @@ class MapBuilder:
         bodies.append(self.trail.update(now, fix))
         objects = []
         for role in self.obstacle_roles:
-            merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
+            found = [
+                (o, velocities[source].get(id(o)))
+                for source, outlines in sources.items()
+                if source[0] == role
+                for o in outlines
+            ]
+            if self.merge:  # one vision system's outlines each: one polygon per object
+                found = [(o, None) for o in merge_outlines(o for o, _ in found)]
             if role != FLEET_ROLE:
-                objects.extend(exclude_bodies(merged, bodies))
+                objects.extend(exclude_bodies([o for o, _ in found], bodies))
                 continue
             # The fleet's model finds this robot too, as one blob with another robot it touches:
-            # its own body is cut out of those blobs, not the blob dropped. The others keep
-            # ``clearance`` more, over the floor they sweep within ``horizon``.
-            self.movers = self.tracker.update(fleet_heard, cut_bodies(merged, bodies))
+            # its own body is cut out of those blobs, not the blob dropped. The others (pieces a
+            # robot's size) keep ``clearance`` more, over the floor they sweep within ``horizon``.
+            pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], bodies)]
+            robots = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
+            self.movers = self.tracker.update(fleet_heard, [p for p, _ in robots], [v for _, v in robots])
+            objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
             objects.extend(self._kept_clear(mover) for mover in self.movers)
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)

@@ -4,7 +4,8 @@ for want of a camera, and how it ends.
 - which of the world's robots it is (:func:`fleet_robot`) and which schedule asks DRVS for it
   (:func:`schedule_for`: watches or the paper's polling), and what each round posts to it
   (:func:`post_round`);
-- when a callback's frames were taken (:func:`callback_stamp`);
+- when a callback's frames were taken (:func:`callback_stamp`), and what a fused callback's
+  status means (:func:`fused_outcome`);
 - whether a vision system covers the robot, and when it fails for lack of one (:class:`Coverage`);
 - the node's exit code (:func:`mission_end`).
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
+from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED
 from drvs.robot.controller import ARRIVED, ARRIVING, FAILED, FINAL_STATES
 from drvs.robot.params import WATCH, RobotParams
 from drvs.robot.perception import LOCALISATION_ROLES, STATIC_ROLES, Fix, Region
@@ -24,11 +26,15 @@ from drvs.robot.watch_schedule import WatchSchedule
 from drvs.sim.world import FleetRobot, World
 
 __all__ = [
+    'FAIL',
     'MAX_STAMP_AGE',
+    'SKIP',
+    'USE',
     'STAMP_SKEW',
     'Coverage',
     'MissionEnd',
     'callback_stamp',
+    'fused_outcome',
     'fleet_robot',
     'mission_end',
     'post_round',
@@ -137,6 +143,29 @@ def callback_stamp(stamp: float, received: float) -> float:
     if 0 < received - stamp < MAX_STAMP_AGE or abs(received - stamp) < STAMP_SKEW:
         return stamp
     return received
+
+
+USE, SKIP, FAIL = 'use', 'skip', 'fail'
+"""What :func:`fused_outcome` says to do with a fused callback."""
+
+
+def fused_outcome(status: int) -> str:
+    """What to do with a fused callback of ``status`` (CallbackCoordinates' constants):
+
+    - ``OK``: :data:`USE` its objects — what the vision systems that answered found, maybe nothing;
+    - ``INVALID``, ``UNSUPPORTED``: :data:`FAIL` — every vision system asked refused the request
+      (the callback's message says why), asking again cannot help;
+    - ``UNAVAILABLE`` (no vision system answered in time) or a status the robot does not know:
+      :data:`SKIP` — it says nothing about the floor; what the robot knew stands.
+
+    >>> fused_outcome(0), fused_outcome(1), fused_outcome(4)
+    ('use', 'fail', 'skip')
+    """
+    if status == ACCEPTED:
+        return USE
+    if status in (INVALID, UNSUPPORTED):
+        return FAIL
+    return SKIP
 
 
 # -- coverage --------------------------------------------------------------------------------------

@@ -35,6 +35,11 @@ class RobotParams(Settings):
         'one-shot requests every control tick)',
         check=one_of(WATCH, POLL),
     )
+    fused: bool = param(
+        True,
+        'ask DRVS for fused answers: one callback per request or watch period from the fusion stage, '
+        'every object once, tracked, with its velocity; false: one callback per vision system (the paper)',
+    )
     rate: float = param(
         5.0, 'control ticks (and, polling, rounds of DRVS requests) per second', unit='Hz', check=POSITIVE
     )

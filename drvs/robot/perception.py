@@ -265,6 +265,7 @@ class Answer:
     stamp: float
     outlines: tuple[Polygon, ...]
     poses: tuple[tuple[float, float, float], ...] = ()  # (x, y, yaw) of each tag, for apriltag
+    velocities: tuple[Point | None, ...] = ()  # each outline's, when the callback gives them (fused)
 
 
 Held = tuple[float, list[Polygon], tuple]
@@ -283,9 +284,17 @@ class Perception:
     :param algorithms: role -> algorithm string; every role of :data:`ROLES`, maybe more.
     :param watch_prefix: the watch ids' prefix (the node's name).
     :param watch_keep: seconds a watch answer stands at most (the watches' duration).
+    :param merge: whether the outlines of one round (several vision systems) are merged into
+        objects (:func:`merge_outlines`); not when DRVS fuses them (one object each already).
     """
 
-    def __init__(self, algorithms: dict[str, str], watch_prefix: str = '', watch_keep: float = math.inf):
+    def __init__(
+        self,
+        algorithms: dict[str, str],
+        watch_prefix: str = '',
+        watch_keep: float = math.inf,
+        merge: bool = True,
+    ):
         missing = [role for role in ROLES if role not in algorithms]
         if missing:
             raise PerceptionError(f'colour_models: missing role(s) {", ".join(missing)}')
@@ -293,6 +302,7 @@ class Perception:
         self.obstacle_roles = tuple(role for role in self.algorithms if role not in LOCALISATION_ROLES)
         self.requests = RequestBook(tuple(self.algorithms), watch_prefix)
         self.watch_keep = watch_keep
+        self.merge = merge
         self._rounds: dict[str, _Round | None] = {role: None for role in LOCALISATION_ROLES}
         self._views: dict[str, dict[str, Held]] = {role: {} for role in LOCALISATION_ROLES}
         self._fixes: dict[str, Fix | None] = {role: None for role in LOCALISATION_ROLES}
@@ -316,8 +326,11 @@ class Perception:
         vision_system: str,
         stamp: float,
         outlines: Iterable[Sequence[Sequence[float]]],
+        velocities: Iterable[Point | None] | None = None,
     ) -> Answer | None:
         """Take one callback; return the accepted answer, or None when it was superseded.
+
+        ``velocities``: each outline's (a fused callback's tracks'), in the answer beside its polygon.
 
         :raises PerceptionError: for an id this robot never issued, or an
             algorithm that is not the one the id's role asks with.
@@ -329,13 +342,17 @@ class Perception:
                 f'the answer says {algorithm!r}'
             )
         outlines = [list(points) for points in outlines]
-        polygons = tuple(p for p in (to_polygon(points) for points in outlines) if p is not None)
+        given = list(velocities) if velocities is not None else [None] * len(outlines)
+        if len(given) != len(outlines):
+            raise PerceptionError(f'velocities: expected {len(outlines)}, one per outline, got {len(given)}')
+        kept = [(p, v) for p, v in zip(map(to_polygon, outlines), given, strict=True) if p is not None]
+        polygons = tuple(p for p, _ in kept)
         poses: tuple[tuple[float, float, float], ...] = ()
         if algorithm.split(':', 1)[0] == 'apriltag':
             from drvs.algorithms.apriltag import tag_pose
 
             poses = tuple(tag_pose(points) for points in outlines if len(points) == 4)
-        answer = Answer(role, seq, vision_system, stamp, polygons, poses)
+        answer = Answer(role, seq, vision_system, stamp, polygons, poses, tuple(v for _, v in kept))
         if seq == WATCH:
             return answer if self._watched(answer) else None
         if role in LOCALISATION_ROLES:
@@ -381,7 +398,8 @@ class Perception:
 
     def _make_fix(self, role: str, answers: dict[str, Held], seq: int, stamp: float) -> None:
         """The fix of ``role`` from the merged outlines of ``answers`` (vision system -> answer)."""
-        objects = merge_outlines(o for _, outlines, _ in answers.values() for o in outlines)
+        outlines = [o for _, found, _ in answers.values() for o in found]
+        objects = merge_outlines(outlines) if self.merge else outlines
         if not objects:
             return
         previous = self._fixes[role]

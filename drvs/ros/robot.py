@@ -24,9 +24,13 @@ from drvs.robot.asked import AskedFloor
 from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
 from drvs.robot.mapping import MapBuilder
 from drvs.robot.mission import (
+    FAIL,
+    SKIP,
+    USE,
     Coverage,
     callback_stamp,
     fleet_robot,
+    fused_outcome,
     mission_end,
     post_round,
     schedule_for,
@@ -77,7 +81,10 @@ class BlindRobot:
         if self.robot_radius is None:  # the circle that holds the body whatever its heading
             self.robot_radius = math.hypot(size[0], size[1]) / 2
         self.watching = params.requests == WATCH
-        self.perception = Perception(me.colour_models, rospy.get_name(), watch_keep=params.watch_duration)
+        self.fused = params.fused
+        self.perception = Perception(
+            me.colour_models, rospy.get_name(), watch_keep=params.watch_duration, merge=not self.fused
+        )
         self.asked = AskedFloor(self.perception.obstacle_roles, params.answer_wait)
         self.regions = RegionPolicy(
             self.floor_size,
@@ -100,6 +107,7 @@ class BlindRobot:
             resolution=params.resolution,
             clearance=params.robot_clearance,
             horizon=params.traffic_horizon,
+            merge=not self.fused,
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(
@@ -125,6 +133,7 @@ class BlindRobot:
         self._tracking = False  # whether the robot's own region is around it (else the whole floor)
         self._done = threading.Event()
         self._last_path: list | None = None
+        self._refused: tuple[str, str] | None = None  # (role, message): a fused answer every camera refused
         self._client: ServiceClient | None = None
         self.node = NodeScaffold(self.health, COUNTERS, hardware_id=rospy.get_name().rsplit('/', 1)[-1])
 
@@ -152,10 +161,11 @@ class BlindRobot:
         self.node.start()
         rospy.on_shutdown(self.node.diagnostics.stop)
         rospy.loginfo(
-            'blind robot: radius %.3f m, speed %.2f m/s, %s %s at %.1f Hz',
+            'blind robot: radius %.3f m, speed %.2f m/s, %s%s %s at %.1f Hz',
             self.robot_radius,
             self.speed,
             'watching with' if self.watching else 'polling',
+            ' fused' if self.fused else '',
             service[0],
             self.params.rate,
         )
@@ -199,22 +209,45 @@ class BlindRobot:
         received = rospy.get_time()
         stamp = callback_stamp(req.stamp.to_sec(), received)
         outlines = [polygon_to_points(obj.boundary) for obj in req.objects]
+        velocities = [(obj.velocity.x, obj.velocity.y) if obj.track_id else None for obj in req.objects]
         serialized = io.BytesIO()
         req.serialize(serialized)
         self.node.counters.add(callbacks=1, callback_bytes=serialized.tell())
+        outcome = fused_outcome(req.status) if req.fused else USE
         with self._lock:
             try:
-                answer = self.perception.accept(
-                    req.algorithm, req.request_id, req.vision_system, stamp, outlines
-                )
+                if outcome != USE:
+                    role, _ = self.perception.requests.parse(req.request_id)
+                    if outcome == FAIL:
+                        self._refused = (role, req.message)
+                    answer = None
+                else:
+                    answer = self.perception.accept(
+                        req.algorithm, req.request_id, req.vision_system, stamp, outlines, velocities
+                    )
             except PerceptionError as error:
                 refused = error  # logged once the lock is released
             else:
                 refused = None
                 if answer is not None and answer.role in self.map.obstacle_roles:
                     region = self.asked.region(answer.role)
-                    self.map.observe(answer.role, answer.vision_system, answer.outlines, received, region)
-                    self.asked.heard(answer.role, answer.vision_system, received)
+                    self.map.observe(
+                        answer.role,
+                        answer.vision_system,
+                        answer.outlines,
+                        received,
+                        region,
+                        answer.velocities,
+                    )
+                    self.asked.heard(answer.role, answer.vision_system, stamp)
+        if outcome == SKIP:
+            self.node.log_throttled(
+                'fused skipped',
+                rospy.logwarn,
+                'a fused callback said nothing (%s): %s',
+                status_name(req.status),
+                req.message,
+            )
         if refused is not None:
             self.node.counters.add(refused_callbacks=1)
             self.node.log_throttled(
@@ -255,11 +288,13 @@ class BlindRobot:
         with self._lock:
             request_id = self.perception.requests.issue(role)
             algorithm = self.perception.algorithms[role]
+        sent = rospy.get_time()
         message = DetectObjectBoundaryRequest(
             algorithm=algorithm,
             region_of_interest=box_to_msg(request.region_of_interest),
             callback_service=self.callback_service,
             request_id=request_id,
+            fused=self.fused,
         )
         try:
             response = self._client.call(message)
@@ -277,13 +312,14 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
-        self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest)
+        self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest, sent)
 
     def _send_watch(self, call: WatchCall) -> None:
         role = call.role
         with self._lock:
             request_id = self.perception.requests.watch_id(role)
             algorithm = self.perception.algorithms[role]
+        sent = rospy.get_time()
         rospy.logdebug(
             'watch %s (%s) in %s for %g s', request_id, call.reason, call.region_of_interest, call.duration
         )
@@ -294,7 +330,10 @@ class BlindRobot:
             request_id=request_id,
             period=call.period,
             duration=call.duration,
-            changes_only=True,
+            # Fused, every period: a fused watch reports in full only at its start, and the robot
+            # needs its own fix while it stands, and the static obstacles past their time to live.
+            changes_only=not self.fused,
+            fused=self.fused,
         )
         try:
             response = self._client.call(message)
@@ -320,16 +359,19 @@ class BlindRobot:
             )
         if call.duration:
             self._answered(
-                role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest
+                role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest, sent
             )
 
-    def _answered(self, role: str, what: str, outcome, response, region) -> None:
-        """Act on the outcome of an answered call over ``region`` (``what`` names it in the log)."""
+    def _answered(self, role: str, what: str, outcome, response, region, sent: float) -> None:
+        """Act on the outcome of an answered call over ``region``, sent at ``sent`` (``what``
+        names it in the log)."""
         if outcome.action == ACCEPT:
             now = rospy.get_time()
             with self._lock:
                 self.coverage.accepted(role, response.vision_systems, now)
-                self.asked.accepted(role, region, now, response.vision_systems)
+                # Fused, one callback answers for every vision system DRVS asked.
+                asked = min(response.vision_systems, 1) if self.fused else response.vision_systems
+                self.asked.accepted(role, region, sent, now, asked)
         elif outcome.action == RETRY:
             self.node.log_throttled(
                 ('refused', response.status),
@@ -389,6 +431,8 @@ class BlindRobot:
         controller = self.controller
         with self._requests:
             invalid = self.schedule.invalid
+        with self._lock:
+            invalid = invalid or self._refused
         if invalid is not None:
             role, message = invalid
             controller.fail(f'DRVS refused the {role} request: {message}')

@@ -12,15 +12,15 @@ ROLES = ('obstacle', 'human')
 
 def both(floor, region, now, vision_systems=2):
     for role in ROLES:
-        floor.accepted(role, region, now, vision_systems)
+        floor.accepted(role, region, now - 0.05, now, vision_systems)
 
 
 def test_nothing_is_known_before_every_role_was_answered():
     floor = AskedFloor(ROLES, settle=0.5)
     assert floor.known(0.0) is NOTHING
-    floor.accepted('obstacle', (0, 0, 4, 3), now=1.0, vision_systems=1)
+    floor.accepted('obstacle', (0, 0, 4, 3), sent=0.95, now=1.0, vision_systems=1)
     assert floor.known(5.0) is NOTHING  # human never asked
-    floor.accepted('human', (1, 0, 5, 3), now=5.0, vision_systems=1)
+    floor.accepted('human', (1, 0, 5, 3), sent=4.95, now=5.0, vision_systems=1)
     assert floor.known(5.4) is NOTHING
     assert floor.known(5.5) == (1, 0, 4, 3)  # what both roles were asked about
 
@@ -28,8 +28,8 @@ def test_nothing_is_known_before_every_role_was_answered():
 def test_answers_are_in_once_every_vision_system_called_back_or_after_settle():
     floor = AskedFloor(ROLES, settle=0.5)
     both(floor, (0, 0, 4, 3), now=1.0)
-    floor.heard('obstacle', '/vs1', 0.9)  # before the call was accepted: an answer to an older one
-    floor.heard('obstacle', '/vs1', 1.1)
+    floor.heard('obstacle', '/vs1', 0.9)  # frames taken before the call was sent: for the old region
+    floor.heard('obstacle', '/vs1', 0.96)
     floor.heard('human', '/vs1', 1.1)
     floor.heard('human', '/vs2', 1.2)
     assert floor.known(1.2) is NOTHING  # vs2 not heard about obstacles yet

@@ -131,6 +131,21 @@ def test_other_robots_keep_a_clearance_over_the_floor_they_sweep_and_have_a_velo
     assert not lethal_at(mapping, (2.68, 1.5))
 
 
+def test_fused_the_other_robots_velocities_are_their_tracks_and_nothing_is_merged():
+    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, horizon=1.0, merge=False)
+    me = fix_at((0.5, 0.5))
+    # The server's one callback: this robot's track (cut out), another robot's, moving north.
+    tracks = [box(0.35, 0.35, 0.65, 0.65), box(1.85, 1.35, 2.15, 1.65)]
+    mapping.observe('robot', '/drvs', tracks, 0.0, velocities=[(0.3, 0.0), (0.0, 0.5)])
+    mapping.update(0.0, me, None)
+    (other,) = mapping.movers
+    assert other.velocity == (0.0, 0.5) and other.position == pytest.approx((2.0, 1.5))
+    assert lethal_at(mapping, (2.0, 2.1)) and not lethal_at(mapping, (2.0, 2.25))  # its next second
+    mapping.observe('robot', '/drvs', [], 0.5, velocities=[])  # gone: lingers, its velocity too
+    mapping.update(0.5, me, None)
+    assert [m.velocity for m in mapping.movers] == [(0.0, 0.5)]
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()

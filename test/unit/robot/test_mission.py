@@ -9,14 +9,18 @@ from test_poll_schedule import drain as drain_requests
 from test_watch_schedule import drain
 
 import drvs.robot.mission
-from drvs.common.status import ACCEPTED
+from drvs.common.status import ACCEPTED, INVALID, UNAVAILABLE, UNSUPPORTED
 from drvs.robot.controller import ARRIVED, ARRIVING, BLOCKED, FAILED, LOCALISING, MOVING
 from drvs.robot.mission import (
+    FAIL,
     MAX_STAMP_AGE,
+    SKIP,
+    USE,
     Coverage,
     MissionEnd,
     callback_stamp,
     fleet_robot,
+    fused_outcome,
     mission_end,
     post_round,
     request_schedule,
@@ -212,3 +216,10 @@ CRASH = 'background loop control failed: KeyError: 1'
 )
 def test_the_exit_code(once, crash, state, end):
     assert mission_end(once, crash, state, 'no fix' if state == FAILED else '') == end
+
+
+@pytest.mark.parametrize(
+    'status, outcome', [(ACCEPTED, USE), (INVALID, FAIL), (UNSUPPORTED, FAIL), (UNAVAILABLE, SKIP), (9, SKIP)]
+)
+def test_a_fused_callback_is_used_skipped_or_fails_the_mission_by_its_status(status, outcome):
+    assert fused_outcome(status) == outcome

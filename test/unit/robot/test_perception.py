@@ -55,6 +55,21 @@ def test_the_same_robot_seen_by_two_cameras_is_one_fix_at_its_centre(perception)
     assert fix.stamp == pytest.approx(2.1)
 
 
+def test_fused_the_server_answers_once_with_objects_merged_already_and_their_velocities():
+    fused = Perception(MODELS, '/robot', merge=False)
+    fused.requests.watch_id('self')
+    # One callback from the server: the robot (a track moving east) and something green touching it.
+    found = fused.accept(
+        MODELS['self'], '/robot/self', '/drvs', 2.0, [square(1.0, 1.0), square(1.3, 1.0)], [(0.4, 0.0), None]
+    )
+    assert found.velocities == ((0.4, 0.0), None) and found.vision_system == '/drvs'
+    fix = fused.fix('self')
+    assert fix.position == pytest.approx((1.0, 1.0)) or fix.position == pytest.approx((1.3, 1.0))
+    assert fix.outline.area == pytest.approx(0.09)  # one of the two: not their union
+    with pytest.raises(PerceptionError, match='velocities: expected 1, one per outline, got 2'):
+        fused.accept(MODELS['self'], '/robot/self', '/drvs', 2.1, [square(1.0, 1.0)], [None, None])
+
+
 def test_callbacks_in_any_order_late_or_twice(perception):
     for _ in range(3):
         perception.requests.issue('self')
