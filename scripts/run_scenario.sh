@@ -3,7 +3,7 @@
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #                                 [--camera-source render|topic] [--requests poll|watch] [--rviz]
-#                                 [--record] [--hosts] [--robot-link RATE]
+#                                 [--fused true|false] [--record] [--hosts] [--robot-link RATE]
 #   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
@@ -32,7 +32,8 @@
 # images, CameraInfo and tf, and each vision_system runs with _source:=topic on
 # them (default: render, each vision system renders its own view on demand).
 # With --requests poll or watch, every robot runs with _requests:= that (default:
-# the robot's own default, standing requests).
+# the robot's own default, standing requests). With --fused true or false, every
+# robot runs with _fused:= that (default: the robot's own default, fused answers).
 # With --rviz, RViz opens on the run with rviz/drvs.rviz (needs a display and
 # Debian's rviz: make rviz-setup installs it).
 # With --record, `rosbag record` writes the run to DIR/run.bag: started before
@@ -52,7 +53,7 @@ set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
 CAMERAS_PER_HOST=8
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--rviz] [--record] [--hosts] [--robot-link RATE]"
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE]"
 help() {
   cat <<EOF
 $synopsis
@@ -67,6 +68,8 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
                          per camera publishes images, CameraInfo and tf, which its vision system reads
   --requests MODE        every robot asks DRVS by poll (one-shot requests) or watch (standing requests);
                          default: the robot's own default (watch)
+  --fused true|false     every robot asks for fused answers (one callback per request or watch period)
+                         or per-camera ones; default: the robot's own default (true)
   --rviz                 open RViz on the run with rviz/drvs.rviz (needs a display)
   --record               record the run's topics into DIR/run.bag (drvs_report DIR/run.bag replays it)
   --hosts                every part on a network host of its own (Linux network namespaces; needs root)
@@ -88,7 +91,7 @@ fail() {  # fail MESSAGE: one line on stderr, exit 2 (before anything started)
   exit 2
 }
 
-world="" timeout="" out="" external=0 stay=0 source=render requests="" rviz=0 record=0 hosts=0 link=""
+world="" timeout="" out="" external=0 stay=0 source=render requests="" fused="" rviz=0 record=0 hosts=0 link=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
@@ -99,6 +102,7 @@ while [ $# -gt 0 ]; do
     --record) record=1; shift ;;
     --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
     --requests) [ $# -ge 2 ] || usage; requests=$2; shift 2 ;;
+    --fused) [ $# -ge 2 ] || usage; fused=$2; shift 2 ;;
     --hosts) hosts=1; shift ;;
     --robot-link) [ $# -ge 2 ] || usage; link=$2; shift 2 ;;
     -h|--help) help; exit 0 ;;
@@ -111,6 +115,7 @@ done
 [ -z "$timeout" ] || [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || fail "--timeout needs seconds, got $timeout"
 [[ "$source" =~ ^(render|topic)$ ]] || fail "--camera-source is render or topic, got $source"
 [[ "$requests" =~ ^(|poll|watch)$ ]] || fail "--requests is poll or watch, got $requests"
+[[ "$fused" =~ ^(|true|false)$ ]] || fail "--fused is true or false, got $fused"
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
 [ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
 [ -x "$root/.venv/bin/python" ] || fail "no .venv: run scripts/setup.sh (or make demo) first"
@@ -326,6 +331,7 @@ start recorder sim "$py" "$root/nodes/scenario_recorder" __name:=scenario_record
 recorder_pid=${pids[-1]}
 robot_args=(_world:="$world")
 [ -z "$requests" ] || robot_args+=(_requests:="$requests")
+[ -z "$fused" ] || robot_args+=(_fused:="$fused")
 [ $stay -eq 1 ] || robot_args+=(_once:=true)
 robot_pids=()
 for robot in $robots; do
@@ -342,7 +348,7 @@ else
   awaited=("${pids[-1]}")
 fi
 
-echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${link:+, the first robot on a $link link}); logs in $out"
+echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${fused:+, fused $fused}${link:+, the first robot on a $link link}); logs in $out"
 started=$SECONDS
 result=timeout
 declare -A ended=()  # pid of an awaited process -> its exit code

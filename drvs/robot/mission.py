@@ -14,6 +14,7 @@ No ROS here: every time is passed in (ROS seconds). docs/nodes/blind_robot.md de
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
@@ -34,9 +35,11 @@ __all__ = [
     'Coverage',
     'MissionEnd',
     'callback_stamp',
+    'changes_only',
     'fused_outcome',
     'fleet_robot',
     'mission_end',
+    'obstacle_memory_ttl',
     'post_round',
     'request_schedule',
     'schedule_for',
@@ -99,6 +102,33 @@ def watch_schedule(params: RobotParams, roles: Collection[str], **kwargs) -> Wat
         cap=params.retry_cap,
         **kwargs,
     )
+
+
+def changes_only(params: RobotParams, role: str) -> bool:
+    """Whether the watch of ``role`` asks for callbacks on change only (``changes_only``).
+
+    Per camera, always: each vision system reports in full when a watch is renewed. Fused, all
+    but the robot's own: the fusion stage reports a watch in full only when it starts, and then
+    the tracks that moved, appeared or are gone — a robot that stands still would hear nothing
+    of itself, so its own watch reports every period.
+
+    >>> fused = RobotParams(world='w.yaml')
+    >>> changes_only(fused, 'self'), changes_only(fused, 'obstacle')
+    (False, True)
+    """
+    return not (params.fused and role == 'self')
+
+
+def obstacle_memory_ttl(params: RobotParams) -> float:
+    """Seconds a source's obstacle outlines stand without a new report
+    (:class:`~drvs.robot.occupancy.ObstacleMemory`): polling, ``~obstacle_ttl``; with per-camera
+    watches, ``~watch_duration`` (each renewal makes the vision systems report in full, so a dead
+    one's outlines expire); fused, until replaced (the fusion stage reports what changed and
+    what is gone, and a static obstacle never changes).
+    """
+    if params.requests != WATCH:
+        return params.obstacle_ttl
+    return math.inf if params.fused else params.watch_duration
 
 
 def schedule_for(params: RobotParams, roles: Collection[str], clock: Callable[[], float]) -> Schedule:

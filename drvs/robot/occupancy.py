@@ -144,7 +144,7 @@ class ObstacleMemory:
     """The latest outlines per source, each forgotten ``ttl`` seconds after it was last heard."""
 
     def __init__(self, ttl: float):
-        if not (ttl > 0 and math.isfinite(ttl)):
+        if not ttl > 0:
             raise OccupancyError(f'obstacle_ttl: expected a positive number of seconds, got {ttl}')
         self.ttl = ttl
         self._sources: dict[Source, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)

@@ -29,9 +29,11 @@ from drvs.robot.mission import (
     USE,
     Coverage,
     callback_stamp,
+    changes_only,
     fleet_robot,
     fused_outcome,
     mission_end,
+    obstacle_memory_ttl,
     post_round,
     schedule_for,
 )
@@ -99,8 +101,7 @@ class BlindRobot:
             tuple(size[:2]),
             self.robot_radius,
             self.perception.obstacle_roles,
-            # A watch's vision systems re-report in full at each renewal: outlines of a dead one expire.
-            ttl=params.watch_duration if self.watching else params.obstacle_ttl,
+            ttl=obstacle_memory_ttl(params),
             # A watch's "all gone" keeps the outlines ~obstacle_ttl more, as polling would.
             linger=params.obstacle_ttl,
             map_period=params.map_period,
@@ -243,7 +244,7 @@ class BlindRobot:
         if outcome == SKIP:
             self.node.log_throttled(
                 'fused skipped',
-                rospy.logwarn,
+                rospy.logdebug,
                 'a fused callback said nothing (%s): %s',
                 status_name(req.status),
                 req.message,
@@ -330,9 +331,7 @@ class BlindRobot:
             request_id=request_id,
             period=call.period,
             duration=call.duration,
-            # Fused, every period: a fused watch reports in full only at its start, and the robot
-            # needs its own fix while it stands, and the static obstacles past their time to live.
-            changes_only=not self.fused,
+            changes_only=changes_only(self.params, role),
             fused=self.fused,
         )
         try:

@@ -348,8 +348,9 @@ class FusionStage:
                 f'no frame from the {len(watch.serving)} vision systems serving the watch in the last period'
             )
         tracker = self._trackers.get(watch.algorithm)
+        stamp = max(heard.answered.values(), default=now)  # the tracks are predicted to the callback's stamp
         objects = (
-            () if tracker is None else tuple(tracker.tracks(now, watch.region, since=now - watch.period))
+            () if tracker is None else tuple(tracker.tracks(stamp, watch.region, since=now - watch.period))
         )
         signatures = {track.track_id: _signature(track) for track in objects}
         gone = tuple(sorted(watch.reported.keys() - signatures.keys()))
@@ -361,7 +362,7 @@ class FusionStage:
             watch.callback_service,
             watch.algorithm,
             watch.key[1],
-            max(heard.answered.values(), default=now),
+            stamp,
             objects,
             status,
             message,

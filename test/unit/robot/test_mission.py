@@ -2,6 +2,7 @@
 coverage timeout and exit codes (no ROS, a manual clock)."""
 
 import doctest
+import math
 
 import pytest
 from shapely.geometry import box
@@ -19,9 +20,11 @@ from drvs.robot.mission import (
     Coverage,
     MissionEnd,
     callback_stamp,
+    changes_only,
     fleet_robot,
     fused_outcome,
     mission_end,
+    obstacle_memory_ttl,
     post_round,
     request_schedule,
     schedule_for,
@@ -223,3 +226,14 @@ def test_the_exit_code(once, crash, state, end):
 )
 def test_a_fused_callback_is_used_skipped_or_fails_the_mission_by_its_status(status, outcome):
     assert fused_outcome(status) == outcome
+
+
+@pytest.mark.parametrize(
+    'requests, fused, ttl', [('poll', True, 1.5), ('watch', False, 20.0), ('watch', True, math.inf)]
+)
+def test_obstacle_outlines_stand_as_long_as_their_source_may_stay_silent(requests, fused, ttl):
+    params = RobotParams(
+        world='w.yaml', requests=requests, fused=fused, obstacle_ttl=1.5, watch_duration=20.0
+    )
+    assert obstacle_memory_ttl(params) == ttl
+    assert changes_only(params, 'self') is not fused and changes_only(params, 'obstacle')
