@@ -152,7 +152,7 @@ class MapBuilder:
         self.publishing = MapPublishing(map_period)
         self.obstacles = 0  # obstacle outlines in the current grid
         self.clearance, self.horizon = clearance, horizon
-        self.tracker = MoverTracker()
+        self.trackers = {role: MoverTracker() for role in self.obstacle_roles if role not in STATIC_ROLES}
         self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
         self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
         self.merge = merge
@@ -163,7 +163,7 @@ class MapBuilder:
         self._velocities: dict[
             Source, dict[int, Point]
         ] = {}  # source -> id(outline) -> its velocity, if given
-        self._fleet_heard = -math.inf  # when a vision system last reported the fleet role
+        self._heard: dict[str, float] = {}  # role -> when a vision system last reported it
 
     def _kept_clear(self, mover: Mover) -> Polygon:
         """The floor another robot holds: its outline, swept over the horizon, grown by the clearance."""
@@ -185,8 +185,7 @@ class MapBuilder:
         region = region if role in STATIC_ROLES else None
         source = (role, vision_system)
         with self._memory_lock:
-            if role == FLEET_ROLE:
-                self._fleet_heard = max(self._fleet_heard, now)
+            self._heard[role] = max(self._heard.get(role, -math.inf), now)
             if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
                 given = zip(outlines, velocities or (), strict=False)
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
@@ -198,13 +197,13 @@ class MapBuilder:
         with self._memory_lock:
             sources = self._memory.current(now)
             velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
-            fleet_heard = self._fleet_heard
+            heard = dict(self._heard)
         bodies = [f.outline for f in (fix, station) if f is not None]
         body = own_body(fix, self.robot_size)
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
-        objects = []
+        objects: list[Polygon] = []
         for role in self.obstacle_roles:
             found = [
                 (o, velocities[source].get(id(o)))
@@ -214,17 +213,25 @@ class MapBuilder:
             ]
             if self.merge:  # one vision system's outlines each: one polygon per object
                 found = [(o, None) for o in merge_outlines(o for o, _ in found)]
-            if role != FLEET_ROLE:
-                objects.extend(exclude_bodies([o for o, _ in found], bodies))
+            if role == FLEET_ROLE:
+                # The fleet's model finds this robot too, as one blob with another robot it touches:
+                # its own body is cut out of those blobs, not the blob dropped.
+                pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], bodies)]
+            else:
+                pieces = [(o, v) for o, v in found if exclude_bodies([o], bodies)]
+            if role in STATIC_ROLES:
+                objects.extend(piece for piece, _ in pieces)
                 continue
-            # The fleet's model finds this robot too, as one blob with another robot it touches:
-            # its own body is cut out of those blobs, not the blob dropped. The others (pieces a
-            # robot's size) keep ``clearance`` more, over the floor they sweep within ``horizon``.
-            pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], bodies)]
-            robots = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
-            self.movers = self.tracker.update(fleet_heard, [p for p, _ in robots], [v for _, v in robots])
+            # Whatever moves (pieces a robot's size at least) keeps ``clearance`` more, over the
+            # floor it sweeps within ``horizon``.
+            big = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
+            movers = self.trackers[role].update(
+                heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]
+            )
             objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
-            objects.extend(self._kept_clear(mover) for mover in self.movers)
+            objects.extend(self._kept_clear(mover) for mover in movers)
+            if role == FLEET_ROLE:
+                self.movers = movers
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)
         return MapUpdate(changes, self.publishing.due(now, bool(changes)))

@@ -81,8 +81,10 @@ def request_schedule(params: RobotParams, **kwargs) -> RequestSchedule:
 def watch_schedule(params: RobotParams, roles: Collection[str], **kwargs) -> WatchSchedule:
     """The robot's watch schedule for ``params`` and ``roles``; ``kwargs`` (clock, rng) are for tests.
 
-    The robot itself and moving obstacles are evaluated every control period, static obstacles
-    every ``~obstacle_period``, the station every ``~station_period``; every watch stands
+    The robot itself and moving obstacles are evaluated every control period (fused, every
+    ``~fused_period``: the fusion stage predicts its tracks between, and a fused watch costs the
+    server a callback from each of its vision systems every period), static obstacles every
+    ``~obstacle_period``, the station every ``~station_period``; every watch stands
     ``~watch_duration``. The robot's own watch is renewed as well when it heard nothing of itself
     for a quarter of ``~fix_timeout``: with ``changes_only`` a robot standing still gets no
     callback, and a renewal makes the vision systems report in full, so its fix stays younger
@@ -90,7 +92,7 @@ def watch_schedule(params: RobotParams, roles: Collection[str], **kwargs) -> Wat
     The robot-station box of the obstacle roles shrinks a little at a time as the robot drives:
     its watches move only once it fell under a quarter of their area.
     """
-    periods = dict.fromkeys(roles, 1.0 / params.rate)
+    periods = dict.fromkeys(roles, params.fused_period if params.fused else 1.0 / params.rate)
     periods.update(dict.fromkeys(set(STATIC_ROLES) & set(roles), params.obstacle_period))
     periods['station'] = params.station_period
     return WatchSchedule(

@@ -40,6 +40,13 @@ class RobotParams(Settings):
         'ask DRVS for fused answers: one callback per request or watch period from the fusion stage, '
         'every object once, tracked, with its velocity; false: one callback per vision system (the paper)',
     )
+    fused_period: float = param(
+        0.5,
+        'with `~fused` watches, the evaluation period asked for the robot itself and moving obstacles '
+        '(per camera: the control period)',
+        unit='s',
+        check=POSITIVE,
+    )
     rate: float = param(
         5.0, 'control ticks (and, polling, rounds of DRVS requests) per second', unit='Hz', check=POSITIVE
     )

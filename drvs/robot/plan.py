@@ -23,20 +23,28 @@ Point = tuple[float, float]
 Box = tuple[float, float, float, float]
 SAMPLES_PER_CELL = 4
 """Points per cell length at which a segment is checked (and the cells around each point)."""
-GRAZE = 1e-6
-"""Cells: a segment's points are widened by this, so a segment along a cell edge counts both cells."""
+CLEARANCE = 0.5
+"""Cells: a shortcut keeps this far from any cell that is not free, as the grid path's cell centres do."""
 
 
-def line_is_free(a: Point, b: Point, costs: np.ndarray, resolution: float) -> bool:
-    """Whether every cell the segment ``a``-``b`` (metres) touches is ``FREE``; a point off the
-    grid counts as its nearest edge cell, as :class:`~drvs.robot.occupancy.GridSpec` does."""
+def line_is_free(
+    a: Point, b: Point, costs: np.ndarray, resolution: float, clearance: float = CLEARANCE
+) -> bool:
+    """Whether every cell within ``clearance`` cells of the segment ``a``-``b`` (metres) is
+    ``FREE``; a point off the grid counts as its nearest edge cell, as
+    :class:`~drvs.robot.occupancy.GridSpec` does."""
     rows, cols = costs.shape
     a_cells = np.asarray(a, float) / resolution
     b_cells = np.asarray(b, float) / resolution
     n = max(2, int(math.ceil(np.abs(b_cells - a_cells).max() * SAMPLES_PER_CELL)) + 1)
     t = np.linspace(0.0, 1.0, n)[:, None]
     points = a_cells[None, :] + t * (b_cells - a_cells)[None, :]
-    for dx, dy in ((-GRAZE, -GRAZE), (-GRAZE, GRAZE), (GRAZE, -GRAZE), (GRAZE, GRAZE)):
+    for dx, dy in (
+        (-clearance, -clearance),
+        (-clearance, clearance),
+        (clearance, -clearance),
+        (clearance, clearance),
+    ):
         col = np.clip(np.floor(points[:, 0] + dx).astype(int), 0, cols - 1)
         row = np.clip(np.floor(points[:, 1] + dy).astype(int), 0, rows - 1)
         if not (costs[row, col] == FREE).all():

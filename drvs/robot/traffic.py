@@ -61,11 +61,15 @@ class MoverTracker:
         self, stamp: float, outlines: Sequence[Polygon], velocities: Sequence[Point | None] | None = None
     ) -> list[Mover]:
         """The movers at ``stamp`` (when the outlines were seen): ``velocities`` where given (a
-        fused track's), estimated for the others. An update at the same stamp changes nothing."""
-        if self._stamp is not None and stamp <= self._stamp:
-            return self.movers
-        dt = stamp - self._stamp if self._stamp is not None else 0.0
+        fused track's), estimated for the others. Nothing seen since the last update (the same
+        ``stamp``, maybe fewer outlines): the velocities of the last one carry on."""
         given = list(velocities) if velocities is not None else [None] * len(outlines)
+        if self._stamp is not None and stamp <= self._stamp:
+            return [
+                Mover(outline, velocity if velocity is not None else self._carried(outline))
+                for outline, velocity in zip(outlines, given, strict=True)
+            ]
+        dt = stamp - self._stamp if self._stamp is not None else 0.0
         previous, movers = list(self.movers), []
         for outline, velocity in zip(outlines, given, strict=True):
             if velocity is None:
@@ -73,6 +77,13 @@ class MoverTracker:
             movers.append(Mover(outline, velocity))
         self.movers, self._stamp = movers, stamp
         return movers
+
+    def _carried(self, outline: Polygon) -> Point:
+        """The velocity of the last update's mover nearest ``outline``, within ``gate``; else standing."""
+        centre = outline.centroid
+        near = [(centre.distance(m.outline.centroid), i) for i, m in enumerate(self.movers)]
+        near = [(d, i) for d, i in near if d <= self.gate]
+        return self.movers[min(near)[1]].velocity if near else (0.0, 0.0)
 
     def _estimate(self, outline: Polygon, previous: list[Mover], dt: float) -> Point:
         if not previous or dt <= 0:

@@ -146,6 +146,14 @@ def test_fused_the_other_robots_velocities_are_their_tracks_and_nothing_is_merge
     assert [m.velocity for m in mapping.movers] == [(0.0, 0.5)]
 
 
+def test_a_walking_person_holds_the_floor_it_sweeps_but_nobody_gives_way_to_it():
+    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, merge=False)
+    mapping.observe('human', '/drvs', [box(1.8, 1.3, 2.2, 1.7)], 0.0, velocities=[(-0.4, 0.0)])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert lethal_at(mapping, (1.45, 1.5)) and not lethal_at(mapping, (1.3, 1.5))  # 0.4 m west of it
+    assert mapping.movers == []  # only robots give way to robots
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()

@@ -77,7 +77,9 @@ def test_requests_watch_asks_with_a_watch_schedule_on_the_given_clock():
     clock = ManualClock(50.0)
     schedule = schedule_for(PARAMS, ROLES, clock)
     assert isinstance(schedule, WatchSchedule) and schedule.clock is clock
-    assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2}
+    assert schedule.periods == {'self': 0.5, 'station': 2.0, 'obstacle': 0.5, 'human': 0.5}  # fused
+    per_camera = schedule_for(RobotParams(world='unused.yaml', fused=False), ROLES, clock)
+    assert per_camera.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2}
 
 
 def test_requests_poll_asks_like_the_paper_with_a_request_schedule():
