@@ -51,6 +51,8 @@ XY = tuple[float, float]
 MOVER_AREA = 0.3
 """Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
 (it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
+MAX_AGE = 1.0
+"""Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
 """Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
 
@@ -165,9 +167,11 @@ class MapBuilder:
         ] = {}  # source -> id(outline) -> its velocity, if given
         self._heard: dict[str, float] = {}  # role -> when a vision system last reported it
 
-    def _kept_clear(self, mover: Mover) -> Polygon:
-        """The floor another robot holds: its outline, swept over the horizon, grown by the clearance."""
-        area = swept(mover.outline, mover.velocity, self.horizon)
+    def _kept_clear(self, mover: Mover, now: float) -> Polygon:
+        """The floor something moving holds: its outline, swept from when it was seen to the
+        horizon beyond ``now``, grown by the clearance."""
+        age = min(max(now - mover.seen, 0.0), MAX_AGE) if mover.seen is not None else 0.0
+        area = swept(mover.outline, mover.velocity, self.horizon + age)
         return area.buffer(self.clearance, 8) if self.clearance > 0 else area
 
     def observe(
@@ -178,14 +182,16 @@ class MapBuilder:
         now: float,
         region: Box | None = None,
         velocities: Sequence[XY | None] | None = None,
+        seen: float | None = None,
     ) -> None:
         """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while) in
         ``region``, the region the robot asked it about: a static role's outlines it reported
-        before outside that region stay. ``velocities``: each outline's, when DRVS tracked them."""
+        before outside that region stay. ``velocities``: each outline's, when DRVS tracked them;
+        ``seen``: when the frames were taken (default ``now``)."""
         region = region if role in STATIC_ROLES else None
         source = (role, vision_system)
         with self._memory_lock:
-            self._heard[role] = max(self._heard.get(role, -math.inf), now)
+            self._heard[role] = max(self._heard.get(role, -math.inf), now if seen is None else seen)
             if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
                 given = zip(outlines, velocities or (), strict=False)
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
@@ -229,7 +235,7 @@ class MapBuilder:
                 heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]
             )
             objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
-            objects.extend(self._kept_clear(mover) for mover in movers)
+            objects.extend(self._kept_clear(mover, now) for mover in movers)
             if role == FLEET_ROLE:
                 self.movers = movers
         self.obstacles = len(objects)

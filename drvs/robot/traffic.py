@@ -22,16 +22,26 @@ __all__ = ['STILL', 'YIELD_MARGIN', 'Mover', 'MoverTracker', 'Yielding', 'closes
 Point = tuple[float, float]
 STILL = 0.15
 """m/s: a robot slower than this stands still (the map holds it; nobody starts giving way to it)."""
-YIELD_MARGIN = 0.05
+YIELD_MARGIN = 0.2
 """Metres beyond the sum of two robots' radii under which their predicted closest approach is too close."""
 
 
 @dataclass(frozen=True)
 class Mover:
-    """Another robot: its outline and its velocity (m/s in ``map``)."""
+    """Another robot: its outline and its velocity (m/s in ``map``), seen at ``seen`` (None: now)."""
 
     outline: Polygon
     velocity: Point = (0.0, 0.0)
+    seen: float | None = None
+
+    def at(self, now: float) -> Mover:
+        """This mover predicted to ``now`` (moved along its velocity since it was seen)."""
+        if self.seen is None or now <= self.seen:
+            return self
+        age = now - self.seen
+        return Mover(
+            translate(self.outline, self.velocity[0] * age, self.velocity[1] * age), self.velocity, now
+        )
 
     @property
     def position(self) -> Point:
@@ -66,7 +76,7 @@ class MoverTracker:
         given = list(velocities) if velocities is not None else [None] * len(outlines)
         if self._stamp is not None and stamp <= self._stamp:
             return [
-                Mover(outline, velocity if velocity is not None else self._carried(outline))
+                Mover(outline, velocity if velocity is not None else self._carried(outline), self._stamp)
                 for outline, velocity in zip(outlines, given, strict=True)
             ]
         dt = stamp - self._stamp if self._stamp is not None else 0.0
@@ -74,7 +84,7 @@ class MoverTracker:
         for outline, velocity in zip(outlines, given, strict=True):
             if velocity is None:
                 velocity = self._estimate(outline, previous, dt)
-            movers.append(Mover(outline, velocity))
+            movers.append(Mover(outline, velocity, stamp))
         self.movers, self._stamp = movers, stamp
         return movers
 
@@ -147,18 +157,21 @@ class Yielding:
     :param patience: seconds it waits for a robot that stands still as well.
     :param tie: m/s by which the other may close the gap faster and this robot still gives way.
     :param gate: metres the robot it gives way to may move between two steps and still be the same.
+    :param release: metres beyond ``distance`` the predicted closest approach must reach before it
+        stops giving way.
     """
 
     def __init__(
-        self, horizon: float, distance: float, patience: float, tie: float = 0.05, gate: float = 0.5
+        self,
+        horizon: float,
+        distance: float,
+        patience: float,
+        tie: float = 0.05,
+        gate: float = 0.5,
+        release: float = 0.1,
     ):
-        self.horizon, self.distance, self.patience, self.tie, self.gate = (
-            horizon,
-            distance,
-            patience,
-            tie,
-            gate,
-        )
+        self.horizon, self.distance, self.patience = horizon, distance, patience
+        self.tie, self.gate, self.release = tie, gate, release
         self.yields = 0  # conflicts it gave way in
         self._other: Mover | None = None  # the robot it gives way to, as it was when it started
         self._at: Point = (0.0, 0.0)  # where that robot was at the last step
@@ -175,11 +188,15 @@ class Yielding:
                 found.append((t, i))
         return movers[min(found)[1]] if found else None
 
-    def _too_close(self, position: Point, velocity: Point, other: Point, its: Point) -> float | None:
-        """When (s from now) a robot at ``other`` moving at ``its`` comes too close; None: it does not."""
+    def _too_close(
+        self, position: Point, velocity: Point, other: Point, its: Point, margin: float = 0.0
+    ) -> float | None:
+        """When (s from now) a robot at ``other`` moving at ``its`` comes closer than ``distance``
+        (plus ``margin``); None: it does not."""
         offset = (other[0] - position[0], other[1] - position[1])
         t, d = closest_approach(offset, (its[0] - velocity[0], its[1] - velocity[1]), self.horizon)
-        if d < self.distance and (t > 0 or math.hypot(*offset) < self.distance):
+        limit = self.distance + margin
+        if d < limit and (t > 0 or math.hypot(*offset) < limit):
             return t
         return None
 
@@ -197,7 +214,9 @@ class Yielding:
         return mine >= theirs - self.tie
 
     def step(self, now: float, position: Point, velocity: Point, movers: Sequence[Mover]) -> Mover | None:
-        """The robot this one gives way to now (it then stands still), or None (it drives on)."""
+        """The robot this one gives way to now (it then stands still), or None (it drives on).
+        ``movers`` are predicted to ``now`` first."""
+        movers = [mover.at(now) for mover in movers]
         dt = 0.0 if self._last is None else max(now - self._last, 0.0)
         self._last = now
         if math.hypot(*velocity) < 1e-9:
@@ -236,7 +255,7 @@ class Yielding:
             if self._waited > self.patience:
                 self._other, self._over = None, now_seen.position
                 return None
-        if self._too_close(position, velocity, now_seen.position, its) is None:
+        if self._too_close(position, velocity, now_seen.position, its, self.release) is None:
             self._other = None
             return None
         return now_seen

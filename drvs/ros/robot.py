@@ -239,6 +239,7 @@ class BlindRobot:
                         received,
                         region,
                         answer.velocities,
+                        stamp,
                     )
                     self.asked.heard(answer.role, answer.vision_system, stamp)
         if outcome == SKIP:
