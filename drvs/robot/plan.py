@@ -23,8 +23,9 @@ Point = tuple[float, float]
 Box = tuple[float, float, float, float]
 SAMPLES_PER_CELL = 4
 """Points per cell length at which a segment is checked (and the cells around each point)."""
-CLEARANCE = 0.5
-"""Cells: a shortcut keeps this far from any cell that is not free, as the grid path's cell centres do."""
+CLEARANCE = 1.0
+"""Cells: a shortcut keeps this far from any cell that is not free (the grid path's cell centres keep
+half a cell at least)."""
 
 
 def line_is_free(

@@ -348,9 +348,10 @@ class FusionStage:
                 f'no frame from the {len(watch.serving)} vision systems serving the watch in the last period'
             )
         tracker = self._trackers.get(watch.algorithm)
-        stamp = max(heard.answered.values(), default=now)  # the tracks are predicted to the callback's stamp
+        # The tracks seen in the period up to the newest frame, predicted to its stamp (the callback's).
+        stamp = max(heard.answered.values(), default=now)
         objects = (
-            () if tracker is None else tuple(tracker.tracks(stamp, watch.region, since=now - watch.period))
+            () if tracker is None else tuple(tracker.tracks(stamp, watch.region, since=stamp - watch.period))
         )
         signatures = {track.track_id: _signature(track) for track in objects}
         gone = tuple(sorted(watch.reported.keys() - signatures.keys()))
