@@ -195,12 +195,7 @@ class MapBuilder:
             if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
                 given = zip(outlines, velocities or (), strict=False)
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
-            # Fused, a static obstacle seen by several cameras may come in parts, one part a time
-            # (the fusion stage leaves a camera's outline out once another's is newer): they add up.
-            accumulate = not self.merge and role in STATIC_ROLES
-            self._memory.observe(
-                source, outlines, now, linger=self.linger, region=region, accumulate=accumulate
-            )
+            self._memory.observe(source, outlines, now, linger=self.linger, region=region)
 
     def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from shapely.geometry import Polygon, box
-from shapely.ops import unary_union
 
 from drvs.robot.dstar_lite import FREE
 
@@ -157,7 +156,6 @@ class ObstacleMemory:
         now: float,
         linger: float = 0.0,
         region: tuple[float, float, float, float] | None = None,
-        accumulate: bool = False,
     ) -> None:
         """``source`` reports everything it now sees (in ``region``): its earlier outlines are
         replaced (there).
@@ -168,13 +166,8 @@ class ObstacleMemory:
         :param region: the region the report is about, for obstacles that stand still: what
             the source reported before outside it stays (the robot asked elsewhere, the
             obstacle is still there). None: the report is about everything.
-        :param accumulate: keep everything the source reported before as well, merged with the
-            new outlines (a static obstacle reported in part, then in another part, is whole).
         """
-        if accumulate and source in self._sources:
-            merged = unary_union([*outlines, *self._sources[source][1]])
-            outlines = [piece for piece in _polygons(merged) if piece.area >= MIN_KEPT]
-        elif region is not None and source in self._sources:
+        if region is not None and source in self._sources:
             outside = box(*region)
             kept = [
                 piece

@@ -1,7 +1,6 @@
 """Occupancy grid: rasterising outlines, inflation, changed-cell diffs, TTL memory, margin crossing."""
 
 import doctest
-import math
 
 import numpy as np
 import pytest
@@ -114,15 +113,6 @@ def test_a_report_about_a_region_keeps_what_the_source_saw_before_outside_it():
     memory.observe(('obstacle', '/vs1'), [box(3, 1, 4, 2)], now=13.0, region=(0, 0, 4, 3))
     (kept,) = memory.current(13.0).values()
     assert kept[0] == box(3, 1, 4, 2) and kept[1].equals(box(4, 1, 5, 2))
-
-
-def test_accumulated_reports_add_up_the_parts_of_an_obstacle():
-    memory = ObstacleMemory(ttl=math.inf)
-    memory.observe(('obstacle', '/drvs'), [box(1, 1, 2, 2)], now=1.0, accumulate=True)
-    memory.observe(('obstacle', '/drvs'), [box(2, 1, 3, 2)], now=2.0, accumulate=True)  # its other half
-    memory.observe(('obstacle', '/drvs'), [], now=3.0, linger=1.0, accumulate=True)
-    ((_, (whole,)),) = memory.current(100.0).items()
-    assert whole.equals(box(1, 1, 3, 2))
 
 
 @pytest.mark.parametrize(
