@@ -12,7 +12,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 from shapely.geometry import Point, Polygon
@@ -128,8 +128,8 @@ class MapBuilder:
     :param resolution: the cell size (default :func:`grid_resolution`).
     :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
     :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
-    :param merge: whether a role's outlines from every source are merged into objects
-        (:func:`merge_outlines`); not when DRVS fuses them (one object each already).
+    :param fused: the roles DRVS fuses (one object each already); the outlines of the others
+        from every source are merged into objects (:func:`merge_outlines`).
     """
 
     def __init__(
@@ -144,7 +144,7 @@ class MapBuilder:
         resolution: float | None = None,
         clearance: float = 0.0,
         horizon: float = 0.0,
-        merge: bool = True,
+        fused: Collection[str] = (),
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
@@ -157,7 +157,7 @@ class MapBuilder:
         self.trackers = {role: MoverTracker() for role in self.obstacle_roles if role not in STATIC_ROLES}
         self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
         self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
-        self.merge = merge
+        self.fused = frozenset(fused)
         self._memory_lock = (
             threading.Lock()
         )  # guards the fields below: callbacks observe, the control loop reads
@@ -217,7 +217,7 @@ class MapBuilder:
                 if source[0] == role
                 for o in outlines
             ]
-            if self.merge:  # one vision system's outlines each: one polygon per object
+            if role not in self.fused:  # one vision system's outlines each: one polygon per object
                 found = [(o, None) for o in merge_outlines(o for o, _ in found)]
             if role == FLEET_ROLE:
                 # The fleet's model finds this robot too, as one blob with another robot it touches:

@@ -38,6 +38,7 @@ __all__ = [
     'changes_only',
     'fused_outcome',
     'fleet_robot',
+    'fused_role',
     'mission_end',
     'obstacle_memory_ttl',
     'post_round',
@@ -106,6 +107,20 @@ def watch_schedule(params: RobotParams, roles: Collection[str], **kwargs) -> Wat
     )
 
 
+def fused_role(params: RobotParams, role: str) -> bool:
+    """Whether ``role`` is asked for fused answers: with ``~fused``, every role but the static
+    obstacles. Those never move, so a per-camera watch of them calls back next to nothing
+    (``changes_only``), and each vision system's outline of a shelf stands until it changes,
+    where the fusion stage's outline of a shelf wider than one camera's view comes in parts
+    (it leaves out a camera's outline once another's is half a second newer).
+
+    >>> params = RobotParams(world='w.yaml')
+    >>> fused_role(params, 'human'), fused_role(params, 'obstacle')
+    (True, False)
+    """
+    return params.fused and role not in STATIC_ROLES
+
+
 def changes_only(params: RobotParams, role: str) -> bool:
     """Whether the watch of ``role`` asks for callbacks on change only (``changes_only``).
 
@@ -118,7 +133,7 @@ def changes_only(params: RobotParams, role: str) -> bool:
     >>> changes_only(fused, 'self'), changes_only(fused, 'obstacle')
     (False, True)
     """
-    return not (params.fused and role == 'self')
+    return not (fused_role(params, role) and role == 'self')
 
 
 def obstacle_memory_ttl(params: RobotParams) -> float:

@@ -32,6 +32,7 @@ from drvs.robot.mission import (
     changes_only,
     fleet_robot,
     fused_outcome,
+    fused_role,
     mission_end,
     obstacle_memory_ttl,
     post_round,
@@ -108,7 +109,7 @@ class BlindRobot:
             resolution=params.resolution,
             clearance=params.robot_clearance,
             horizon=params.traffic_horizon,
-            merge=not self.fused,
+            fused=[role for role in self.perception.obstacle_roles if fused_role(params, role)],
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(
@@ -296,7 +297,7 @@ class BlindRobot:
             region_of_interest=box_to_msg(request.region_of_interest),
             callback_service=self.callback_service,
             request_id=request_id,
-            fused=self.fused,
+            fused=fused_role(self.params, role),
         )
         try:
             response = self._client.call(message)
@@ -333,7 +334,7 @@ class BlindRobot:
             period=call.period,
             duration=call.duration,
             changes_only=changes_only(self.params, role),
-            fused=self.fused,
+            fused=fused_role(self.params, role),
         )
         try:
             response = self._client.call(message)
@@ -370,7 +371,8 @@ class BlindRobot:
             with self._lock:
                 self.coverage.accepted(role, response.vision_systems, now)
                 # Fused, one callback answers for every vision system DRVS asked.
-                asked = min(response.vision_systems, 1) if self.fused else response.vision_systems
+                fused = fused_role(self.params, role)
+                asked = min(response.vision_systems, 1) if fused else response.vision_systems
                 self.asked.accepted(role, region, sent, now, asked)
         elif outcome.action == RETRY:
             self.node.log_throttled(
