@@ -37,13 +37,14 @@ class RobotParams(Settings):
     )
     fused: bool = param(
         True,
-        'ask DRVS for fused answers: one callback per request or watch period from the fusion stage, '
-        'every object once, tracked, with its velocity; false: one callback per vision system (the paper)',
+        'ask DRVS for fused answers about the station, people and other robots: one callback per '
+        'request or watch period from the fusion stage, every object once, tracked, with its velocity '
+        '(itself and static obstacles: per camera); false: one callback per vision system (the paper)',
     )
     fused_period: float = param(
         0.5,
-        'with `~fused` watches, the evaluation period asked for the robot itself and moving obstacles '
-        '(per camera: the control period)',
+        'with `~fused`, the evaluation period asked for moving obstacles (people, other robots; '
+        'per camera: the control period)',
         unit='s',
         check=POSITIVE,
     )

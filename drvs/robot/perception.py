@@ -284,8 +284,8 @@ class Perception:
     :param algorithms: role -> algorithm string; every role of :data:`ROLES`, maybe more.
     :param watch_prefix: the watch ids' prefix (the node's name).
     :param watch_keep: seconds a watch answer stands at most (the watches' duration).
-    :param merge: whether the outlines of one round (several vision systems) are merged into
-        objects (:func:`merge_outlines`); not when DRVS fuses them (one object each already).
+    :param fused: the roles DRVS fuses (one object each already); the outlines of a round of the
+        others (several vision systems) are merged into objects (:func:`merge_outlines`).
     """
 
     def __init__(
@@ -293,7 +293,7 @@ class Perception:
         algorithms: dict[str, str],
         watch_prefix: str = '',
         watch_keep: float = math.inf,
-        merge: bool = True,
+        fused: Collection[str] = (),
     ):
         missing = [role for role in ROLES if role not in algorithms]
         if missing:
@@ -302,7 +302,7 @@ class Perception:
         self.obstacle_roles = tuple(role for role in self.algorithms if role not in LOCALISATION_ROLES)
         self.requests = RequestBook(tuple(self.algorithms), watch_prefix)
         self.watch_keep = watch_keep
-        self.merge = merge
+        self.fused = frozenset(fused)
         self._rounds: dict[str, _Round | None] = {role: None for role in LOCALISATION_ROLES}
         self._views: dict[str, dict[str, Held]] = {role: {} for role in LOCALISATION_ROLES}
         self._fixes: dict[str, Fix | None] = {role: None for role in LOCALISATION_ROLES}
@@ -399,7 +399,7 @@ class Perception:
     def _make_fix(self, role: str, answers: dict[str, Held], seq: int, stamp: float) -> None:
         """The fix of ``role`` from the merged outlines of ``answers`` (vision system -> answer)."""
         outlines = [o for _, found, _ in answers.values() for o in found]
-        objects = merge_outlines(outlines) if self.merge else outlines
+        objects = outlines if role in self.fused else merge_outlines(outlines)
         if not objects:
             return
         previous = self._fixes[role]

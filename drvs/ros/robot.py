@@ -29,7 +29,6 @@ from drvs.robot.mission import (
     USE,
     Coverage,
     callback_stamp,
-    changes_only,
     fleet_robot,
     fused_outcome,
     fused_role,
@@ -85,8 +84,9 @@ class BlindRobot:
             self.robot_radius = math.hypot(size[0], size[1]) / 2
         self.watching = params.requests == WATCH
         self.fused = params.fused
+        fused = [role for role in me.colour_models if fused_role(params, role)]
         self.perception = Perception(
-            me.colour_models, rospy.get_name(), watch_keep=params.watch_duration, merge=not self.fused
+            me.colour_models, rospy.get_name(), watch_keep=params.watch_duration, fused=fused
         )
         self.asked = AskedFloor(self.perception.obstacle_roles, params.answer_wait)
         self.regions = RegionPolicy(
@@ -109,7 +109,7 @@ class BlindRobot:
             resolution=params.resolution,
             clearance=params.robot_clearance,
             horizon=params.traffic_horizon,
-            fused=[role for role in self.perception.obstacle_roles if fused_role(params, role)],
+            fused=fused,
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(
@@ -333,7 +333,7 @@ class BlindRobot:
             request_id=request_id,
             period=call.period,
             duration=call.duration,
-            changes_only=changes_only(self.params, role),
+            changes_only=True,
             fused=fused_role(self.params, role),
         )
         try:

@@ -132,7 +132,9 @@ def test_other_robots_keep_a_clearance_over_the_floor_they_sweep_and_have_a_velo
 
 
 def test_fused_the_other_robots_velocities_are_their_tracks_and_nothing_is_merged():
-    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('robot',))
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('robot',)
+    )
     me = fix_at((0.5, 0.5))
     # The server's one callback: this robot's track (cut out), another robot's, moving north.
     tracks = [box(0.35, 0.35, 0.65, 0.65), box(1.85, 1.35, 2.15, 1.65)]
@@ -147,7 +149,9 @@ def test_fused_the_other_robots_velocities_are_their_tracks_and_nothing_is_merge
 
 
 def test_a_walking_person_holds_the_floor_it_sweeps_but_nobody_gives_way_to_it():
-    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',))
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',)
+    )
     mapping.observe('human', '/drvs', [box(1.8, 1.3, 2.2, 1.7)], 0.0, velocities=[(-0.4, 0.0)])
     mapping.update(0.0, fix_at((0.5, 0.5)), None)
     assert lethal_at(mapping, (1.45, 1.5)) and not lethal_at(mapping, (1.3, 1.5))  # 0.4 m west of it

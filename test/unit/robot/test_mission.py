@@ -20,9 +20,9 @@ from drvs.robot.mission import (
     Coverage,
     MissionEnd,
     callback_stamp,
-    changes_only,
     fleet_robot,
     fused_outcome,
+    fused_role,
     mission_end,
     obstacle_memory_ttl,
     post_round,
@@ -77,7 +77,7 @@ def test_requests_watch_asks_with_a_watch_schedule_on_the_given_clock():
     clock = ManualClock(50.0)
     schedule = schedule_for(PARAMS, ROLES, clock)
     assert isinstance(schedule, WatchSchedule) and schedule.clock is clock
-    assert schedule.periods == {'self': 0.5, 'station': 2.0, 'obstacle': 0.5, 'human': 0.5}  # fused
+    assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.5}  # human fused
     per_camera = schedule_for(RobotParams(world='unused.yaml', fused=False), ROLES, clock)
     assert per_camera.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2}
 
@@ -238,4 +238,4 @@ def test_obstacle_outlines_stand_as_long_as_their_source_may_stay_silent(request
         world='w.yaml', requests=requests, fused=fused, obstacle_ttl=1.5, watch_duration=20.0
     )
     assert obstacle_memory_ttl(params) == ttl
-    assert changes_only(params, 'self') is not fused and changes_only(params, 'obstacle')
+    assert fused_role(params, 'human') is fused and not fused_role(params, 'self')

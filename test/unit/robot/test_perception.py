@@ -56,7 +56,7 @@ def test_the_same_robot_seen_by_two_cameras_is_one_fix_at_its_centre(perception)
 
 
 def test_fused_the_server_answers_once_with_objects_merged_already_and_their_velocities():
-    fused = Perception(MODELS, '/robot', merge=False)
+    fused = Perception(MODELS, '/robot', fused=('self', 'station'))
     fused.requests.watch_id('self')
     # One callback from the server: the robot (a track moving east) and something green touching it.
     found = fused.accept(
