@@ -28,7 +28,6 @@ OPTIONS = [
     '--stay',
     '--camera-source',
     '--requests',
-    '--fused',
     '--rviz',
     '--record',
     '--hosts',
