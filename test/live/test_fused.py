@@ -1,6 +1,8 @@
 """Fused mode on a live graph: the server's fusion stage with fake vision systems that answer,
 refuse, stay silent or stamp their frames off the clock, and a callback recorder as the robot."""
 
+import time
+
 import pytest
 from test_server import CALLBACK, COLOUR, square
 
@@ -92,7 +94,7 @@ def test_refusals_silence_and_empty_regions_are_answered_once(ros, graph):
 
 
 def test_a_watch_follows_a_moving_object_with_one_id_and_reports_it_gone(ros, graph):
-    common = {'answer': True, 'watch': True, 'velocity': [0.5, 0.0]}
+    common = {'answer': True, 'watch': True, 'velocity': [0.5, 0.0], 'epoch': time.time()}
     walk1 = graph.camera('walk1', square(0, 0, 6, 6), objects=[BOX], **common)
     skewed = graph.camera('walk2', square(3, 0, 9, 6), objects=[BOX], stamp_offset=-0.2, **common)
     client = ServiceClient('/drvs/watch_object_boundary', WatchObjectBoundary, 10.0)

@@ -28,7 +28,8 @@ Parameters:
 - ``~hang`` (seconds, default 0): hold every request this long before answering.
 - ``~watch`` (bool, default false): serve ``~watch_object_boundary`` too, before registering.
 - ``~objects`` (YAML list of outlines, each a list of [x, y], default ``[]``): with ``~answer``,
-  what it "sees"; each moves at ``~velocity`` ([vx, vy] m/s, default [0, 0]) from the node's start.
+  what it "sees"; each moves at ``~velocity`` ([vx, vy] m/s, default [0, 0]) from ``~epoch`` (ROS
+  seconds, default the node's start: give fakes that see the same objects the same epoch).
 - ``~answer`` (bool, default false): call the request's callback service back with the objects
   whose centre lies in the region (a request once; a watch every period until it ends).
 - ``~stamp_offset`` (seconds, default 0): stamp callbacks this far off the clock (a camera
@@ -92,7 +93,7 @@ def main():
     offset = float(rospy.get_param('~stamp_offset', 0.0))
     refuse = int(rospy.get_param('~refuse', 0))
     refuse_message = rospy.get_param('~refuse_message', 'refused by the fake')
-    started = rospy.get_time()
+    started = float(rospy.get_param('~epoch', rospy.get_time()))  # when the objects were at ~objects
     watches = {}  # (caller, request_id) -> end time
 
     def seen(request):
