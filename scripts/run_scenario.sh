@@ -3,7 +3,8 @@
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #                                 [--camera-source render|topic] [--requests poll|watch] [--rviz]
-#                                 [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]
+#                                 [--fused true|false] [--record] [--hosts] [--robot-link RATE]
+#                                 [--gateway [--gateway-bind HOST:PORT]]
 #   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
@@ -18,7 +19,7 @@
 # otherwise); then stops everything it started (also on Ctrl-C), leaves
 # DIR/summary.json and DIR/run.png and prints the run's figures (a row per robot
 # and per camera, the server's totals). Exits 0 only if every robot reached its
-# station, and names those that did not otherwise.
+# station without a collision, and names those that did not, or collided, otherwise.
 # A world with real_time_factor below 1 runs on ROS simulated time: /use_sim_time
 # is set true on the master before any node starts (false for any other world),
 # and world_sim, which publishes /clock, starts first.
@@ -32,7 +33,8 @@
 # images, CameraInfo and tf, and each vision_system runs with _source:=topic on
 # them (default: render, each vision system renders its own view on demand).
 # With --requests poll or watch, every robot runs with _requests:= that (default:
-# the robot's own default, standing requests).
+# the robot's own default, standing requests). With --fused true or false, every
+# robot runs with _fused:= that (default: the robot's own default, fused answers).
 # With --rviz, RViz opens on the run with rviz/drvs.rviz (needs a display and
 # Debian's rviz: make rviz-setup installs it).
 # With --gateway, drvs_gateway runs with DRVS (docs/gateway.md) on --gateway-bind (default
@@ -56,7 +58,7 @@ set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
 CAMERAS_PER_HOST=8
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
 help() {
   cat <<EOF
 $synopsis
@@ -71,6 +73,8 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
                          per camera publishes images, CameraInfo and tf, which its vision system reads
   --requests MODE        every robot asks DRVS by poll (one-shot requests) or watch (standing requests);
                          default: the robot's own default (watch)
+  --fused true|false     every robot asks for fused answers (one callback per request or watch period)
+                         or per-camera ones; default: the robot's own default (true)
   --rviz                 open RViz on the run with rviz/drvs.rviz (needs a display)
   --gateway              run drvs_gateway too (DRVS over HTTP, docs/gateway.md) and print the URL of its live
                          floor-plan page and the run's token (made for the run; also in DIR/gateway.token)
@@ -80,8 +84,8 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
   --robot-link RATE      with --hosts: limit the first robot's link to RATE both ways, e.g. 2mbit
   -h, --help             print this help and exit
 Stop it with Ctrl-C; if this script was killed, $stop_script DIR stops what it started.
-Exit code: 0 every robot reached its station; 1 a robot failed, the run timed out or a node
-crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
+Exit code: 0 every robot reached its station without a collision; 1 a robot failed or collided,
+the run timed out or a node crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
 network hosts possible with --hosts; 130 interrupted.
 EOF
 }
@@ -95,7 +99,7 @@ fail() {  # fail MESSAGE: one line on stderr, exit 2 (before anything started)
   exit 2
 }
 
-world="" timeout="" out="" external=0 stay=0 source=render requests="" rviz=0 record=0 hosts=0 link="" gateway=0 gateway_bind=""
+world="" timeout="" out="" external=0 stay=0 source=render requests="" fused="" rviz=0 record=0 hosts=0 link="" gateway=0 gateway_bind=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
@@ -108,6 +112,7 @@ while [ $# -gt 0 ]; do
     --gateway-bind) [ $# -ge 2 ] || usage; gateway_bind=$2; shift 2 ;;
     --camera-source) [ $# -ge 2 ] || usage; source=$2; shift 2 ;;
     --requests) [ $# -ge 2 ] || usage; requests=$2; shift 2 ;;
+    --fused) [ $# -ge 2 ] || usage; fused=$2; shift 2 ;;
     --hosts) hosts=1; shift ;;
     --robot-link) [ $# -ge 2 ] || usage; link=$2; shift 2 ;;
     -h|--help) help; exit 0 ;;
@@ -120,6 +125,7 @@ done
 [ -z "$timeout" ] || [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || fail "--timeout needs seconds, got $timeout"
 [[ "$source" =~ ^(render|topic)$ ]] || fail "--camera-source is render or topic, got $source"
 [[ "$requests" =~ ^(|poll|watch)$ ]] || fail "--requests is poll or watch, got $requests"
+[[ "$fused" =~ ^(|true|false)$ ]] || fail "--fused is true or false, got $fused"
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
 [ -z "$gateway_bind" ] || [ $gateway -eq 1 ] || fail "--gateway-bind needs --gateway"
 [ -z "$gateway_bind" ] || [[ "$gateway_bind" =~ ^(\[[0-9a-fA-F:]+\]|[^:]+):[0-9]+$ ]] || fail "--gateway-bind needs HOST:PORT, got $gateway_bind"
@@ -359,6 +365,7 @@ start recorder sim "$py" "$root/nodes/scenario_recorder" __name:=scenario_record
 recorder_pid=${pids[-1]}
 robot_args=(_world:="$world")
 [ -z "$requests" ] || robot_args+=(_requests:="$requests")
+[ -z "$fused" ] || robot_args+=(_fused:="$fused")
 [ $stay -eq 1 ] || robot_args+=(_once:=true)
 robot_pids=()
 for robot in $robots; do
@@ -375,7 +382,7 @@ else
   awaited=("${pids[-1]}")
 fi
 
-echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${link:+, the first robot on a $link link}); logs in $out"
+echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${fused:+, fused $fused}${link:+, the first robot on a $link link}); logs in $out"
 started=$SECONDS
 result=timeout
 declare -A ended=()  # pid of an awaited process -> its exit code
@@ -434,10 +441,19 @@ elif [ "$result" = done ] && [ "${ended[${awaited[0]}]}" -ne 0 ]; then
 fi
 [ "$result" != done ] || [ ${#failed[@]} -gt 0 ] || result=reached
 [ "$result" != done ] || result=failed
+# A collision fails a blind robot's mission, even when every robot reached its station.
+collided=""
+if [ -f "$out/summary.json" ]; then
+  collided=$("$py" -c 'import json, sys
+from drvs.sim.report import collision_failure
+print(collision_failure(json.load(open(sys.argv[1]))))' "$out/summary.json")
+fi
+[ -z "$collided" ] || [ "$result" != reached ] || result=collided
 if [ $stay -eq 1 ] && [ "$result" != crashed ]; then
   case $result in
     reached) outcome="every robot reached its station" ;;
     failed) outcome="did not reach the station: ${failed[*]}" ;;
+    collided) outcome="every robot reached its station, with collisions: $collided" ;;
     *) outcome="timed out after $timeout s" ;;
   esac
   echo "run_scenario: $outcome; DRVS and the robots keep running at $ROS_MASTER_URI until Ctrl-C"
@@ -454,6 +470,7 @@ for robot in "${failed[@]}"; do
   fi
 done
 [ "$result" != timeout ] || echo "run_scenario: timed out after $timeout s${not_done:+; not done: ${not_done[*]}}" >&2
+[ -z "$collided" ] || echo "run_scenario: $collided" >&2
 [ -f "$out/summary.json" ] && echo "run_scenario: summary $out/summary.json, picture $out/run.png"
 [ -f "$out/run.bag" ] && [ $record -eq 1 ] && echo "run_scenario: bag $out/run.bag (nodes/drvs_report $out/run.bag)"
 [ "$result" = reached ]

@@ -15,10 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drvs.robot.dstar_lite import DStarLite
+from drvs.robot.asked import Box, inside, intersection
+from drvs.robot.dstar_lite import FREE, DStarLite
 from drvs.robot.occupancy import CostGrid, crosses_margin
 from drvs.robot.perception import Fix
+from drvs.robot.plan import corridor, densify, nearest_on_path, point_along, shortcut
 from drvs.robot.robot_status import RobotStatus
+from drvs.robot.traffic import Mover, Yielding
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -44,6 +47,7 @@ class ControllerSettings:
     lookahead: float = 0.2  # m along the path to the point the robot steers to
     replan_distance: float = 0.3  # m: map changes this close to the remaining path trigger a re-plan
     route_tolerance: float = 0.15  # m: a repaired path straying further from the old route is a re-plan
+    corridor_margin: float = 0.375  # m around a plan whose obstacles must be known before it is followed
     approach_gain: float = 1.5  # 1/s: speed = min(speed, gain * distance to goal) near the goal
     min_speed: float = 0.05  # m/s, so the approach never stalls
 
@@ -74,6 +78,10 @@ class DeadReckoning:
         return (x, y)
 
 
+def _box_text(box: Box | None) -> str:
+    return 'nowhere' if box is None else '({:.2f}, {:.2f})-({:.2f}, {:.2f})'.format(*box)
+
+
 def _distance(a: Point, b: Point) -> float:
     return math.hypot(a[0] - b[0], a[1] - b[1])
 
@@ -98,13 +106,18 @@ def route_changed(old: Sequence[Point], new: Sequence[Point], tolerance: float) 
 class Controller:
     """Plans on ``grid`` with D* Lite and drives along the plan; see the module docstring."""
 
-    def __init__(self, grid: CostGrid, settings: ControllerSettings, now: float):
+    def __init__(
+        self, grid: CostGrid, settings: ControllerSettings, now: float, yielding: Yielding | None = None
+    ):
         self.grid = grid
         self.settings = settings
+        self.yielding = yielding  # gives way to other robots (None: never)
+        self.yielding_to: Mover | None = None  # the robot it gives way to now
         self.state = LOCALISING
         self.reason = ''
         self.replans = 0
-        self.path: list[Point] = []
+        self.path: list[Point] = []  # the plan it follows
+        self.pending: list[Point] | None = None  # a new plan, until the floor it crosses is known
         self.position: Point | None = None
         self.goal: Point | None = None
         self.dead_reckoning = DeadReckoning()
@@ -115,6 +128,9 @@ class Controller:
         self._blocked_since: float | None = None
         self._stopped_at: float | None = None
         self._progress = 0
+        self._repaired = False  # whether the pending plan repairs the one followed (a re-plan if it moved)
+        self._cells = 0  # grid cells of the pending plan, for the log
+        self._waiting_since: float | None = None  # since when the pending plan waits for answers
 
     # -- inputs ----------------------------------------------------------------------------
     def on_map_changed(self, changes: Sequence[tuple[tuple[int, int], float]]) -> None:
@@ -122,7 +138,7 @@ class Controller:
         if not changes or self._planner is None:
             return
         self._planner.update_cells(changes)
-        if self.state == BLOCKED or not self.path:
+        if self.state == BLOCKED or not self.path or self.pending is not None:
             self._replan = True
             return
         spec = self.grid.spec
@@ -144,13 +160,36 @@ class Controller:
         log.error('robot stopped: %s', reason)
 
     # -- the control tick --------------------------------------------------------------------
-    def step(self, now: float, fix: Fix | None, station: Fix | None) -> tuple[float, float]:
-        """Decide the velocity (vx, vy) in ``map`` for now; records it for dead reckoning."""
-        vx, vy = self._decide(now, fix, station)
+    def step(
+        self,
+        now: float,
+        fix: Fix | None,
+        station: Fix | None,
+        known: Box | None = None,
+        movers: Sequence[Mover] = (),
+    ) -> tuple[float, float]:
+        """Decide the velocity (vx, vy) in ``map`` for now; records it for dead reckoning.
+
+        :param known: the floor whose obstacles the robot asked about and heard back on
+            (:class:`drvs.robot.asked.AskedFloor`): a new plan is followed only once its
+            corridor is inside it (None: anywhere).
+        :param movers: the other robots, with their velocities: it stands still while it gives
+            way to one (:class:`drvs.robot.traffic.Yielding`).
+        """
+        vx, vy = self._decide(now, fix, station, known)
+        if self.yielding is not None and self.state == MOVING and self.position is not None:
+            other = self.yielding.step(now, self.position, (vx, vy), movers)
+            if other is not None and self.yielding_to is None:
+                log.info('giving way to a robot at (%.2f, %.2f)', *other.position)
+            self.yielding_to = other
+            if other is not None:
+                vx, vy = 0.0, 0.0
         self.dead_reckoning.command(now, vx, vy)
         return vx, vy
 
-    def _decide(self, now: float, fix: Fix | None, station: Fix | None) -> tuple[float, float]:
+    def _decide(
+        self, now: float, fix: Fix | None, station: Fix | None, known: Box | None
+    ) -> tuple[float, float]:
         s = self.settings
         if self.state in FINAL_STATES:
             return (0.0, 0.0)
@@ -177,7 +216,18 @@ class Controller:
         if self.state in (LOCALISING, ARRIVING):
             self.state = MOVING
 
-        self._plan()
+        self._plan(known)
+        if self.pending is not None:  # a plan over floor not asked about yet: wait for the answers
+            if self._waiting_since is None:
+                self._waiting_since = now
+                log.info('asking about the floor of a new plan before following it')
+            elif now - self._waiting_since > s.unreachable_timeout:
+                self.fail(
+                    f'no answers about the floor of its plan (obstacles in {_box_text(self.corridor)}) '
+                    f'for {s.unreachable_timeout:.1f} s'
+                )
+            return (0.0, 0.0)
+        self._waiting_since = None
         if not self.path:
             if self._blocked_since is None:
                 self._blocked_since = now
@@ -207,28 +257,31 @@ class Controller:
         self.goal = goal
         spec = self.grid.spec
         self._planner = DStarLite(self.grid.costs, spec.cell_of(self.position), spec.cell_of(goal))
-        self.path = []
+        self.path, self.pending, self._repaired = [], None, False
         self._replan = True
 
-    def _plan(self) -> None:
-        """(Re-)extract the path when the map changed near it, the robot left it, or it is blocked."""
+    def _plan(self, known: Box | None) -> None:
+        """(Re-)extract the plan when the map changed near it, the robot left it, or it is blocked;
+        follow a new plan only once its corridor is inside ``known`` (else it is :attr:`pending`)."""
         assert self.position is not None and self.goal is not None and self._planner is not None  # by _decide
         spec = self.grid.spec
-        start = spec.cell_of(self.position)
         off_path = bool(self.path) and self._distance_to_path() > 2 * self.settings.lookahead
-        if not (self._replan or off_path or not self.path):
-            return
-        self._planner.set_start(start)
-        self._planner.compute_shortest_path()
-        repaired = bool(self.path) and self._replan
-        self._replan = False
-        cells = self._planner.path()
-        if not cells or crosses_margin(cells, self.grid.costs):
-            self.path = []
+        if self._replan or off_path or not (self.path or self.pending):
+            self._planner.set_start(spec.cell_of(self.position))
+            self._planner.compute_shortest_path()
+            self._repaired = self._repaired or (bool(self.path) and self._replan)
+            self._replan = False
+            cells = self._planner.path()
+            if not cells or crosses_margin(cells, self.grid.costs):
+                self.path, self.pending, self._repaired = [], None, False
+                return
+            self.pending, self._cells = self._smoothed(cells), len(cells)
+        if self.pending is None or not (known is None or inside(self._corridor(self.pending), known)):
             return
         previous = self.path[self._progress :]
-        self.path = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
+        self.path, self.pending = self.pending, None
         self._progress = 0
+        repaired, self._repaired = self._repaired, False
         # A repair that leaves the route where it was (a human moving beside it, an outline
         # a pixel wider) is not a re-plan: only a changed route counts and is logged as one.
         replan = repaired and route_changed(previous, self.path, self.settings.route_tolerance)
@@ -241,10 +294,33 @@ class Controller:
             '%s from %s: %d cells, cost %.2f m%s',
             're-planned' if replan else 'planned',
             self._where(),
-            len(cells),
+            self._cells,
             self._planner.path_cost() * spec.resolution,
             f' (re-plan {self.replans})' if replan else '',
         )
+
+    @property
+    def corridor(self) -> Box | None:
+        """The floor the robot must know the obstacles of: around its pending plan, else around
+        the rest of the plan it follows (None without either)."""
+        plan = self.pending if self.pending is not None else self.path[self._progress :]
+        return self._corridor(plan) if plan else None
+
+    def _corridor(self, plan: Sequence[Point]) -> Box:
+        """``plan``'s box grown by ``corridor_margin``, on the floor."""
+        width, height = self.grid.spec.size
+        return intersection(corridor(plan, self.settings.corridor_margin), (0.0, 0.0, width, height))
+
+    def _smoothed(self, cells: Sequence[tuple[int, int]]) -> list[Point]:
+        """The grid path ``cells`` from the robot to the goal as straight segments over free cells
+        (:func:`drvs.robot.plan.shortcut`), a point every cell along them."""
+        assert self.position is not None and self.goal is not None  # by _decide
+        spec, costs = self.grid.spec, self.grid.costs
+        points = [self.position, *(spec.centre_of(c) for c in cells[1:-1]), self.goal]
+        free = [bool(costs[c] == FREE) for c in cells]
+        if len(cells) == 1:  # the robot and its goal in one cell
+            free = free * 2
+        return densify(shortcut(points, free, costs, spec.resolution), spec.resolution)
 
     def _distance_to_path(self) -> float:
         assert self.position is not None  # a path starts where the robot was located
@@ -252,24 +328,13 @@ class Controller:
         return float(np.hypot(points[:, 0] - self.position[0], points[:, 1] - self.position[1]).min())
 
     def _follow(self, to_goal: float) -> tuple[float, float]:
-        """Steer to the point ``lookahead`` metres along the path past the nearest path vertex."""
+        """Pure pursuit: steer to the point ``lookahead`` metres along the plan past the point of
+        it nearest the robot (on a straight segment, the robot converges onto it and stays)."""
         assert self.position is not None  # a path starts where the robot was located
         s = self.settings
-        points = np.asarray(self.path)
-        window = points[self._progress :]
-        nearest = self._progress + int(
-            np.argmin(np.hypot(window[:, 0] - self.position[0], window[:, 1] - self.position[1]))
-        )
-        self._progress = nearest
-        target = self.path[-1]
-        travelled = 0.0
-        previous = self.position
-        for point in self.path[nearest + 1 :]:
-            travelled += _distance(previous, point)
-            previous = point
-            if travelled >= s.lookahead:
-                target = point
-                break
+        segment, fraction = nearest_on_path(self.path, self.position, self._progress)
+        self._progress = segment
+        target = point_along(self.path, segment, fraction, s.lookahead)
         dx, dy = target[0] - self.position[0], target[1] - self.position[1]
         norm = math.hypot(dx, dy)
         if norm < 1e-9:

@@ -12,14 +12,23 @@ from __future__ import annotations
 import collections
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 from shapely.geometry import Point, Polygon
 from shapely.ops import unary_union
 
-from drvs.robot.occupancy import Cell, CostGrid, GridSpec, MapPublishing, ObstacleMemory
-from drvs.robot.perception import FLEET_ROLE, Fix, cut_bodies, exclude_bodies, merge_outlines
+from drvs.robot.occupancy import Cell, CostGrid, GridSpec, MapPublishing, ObstacleMemory, Source
+from drvs.robot.perception import (
+    FLEET_ROLE,
+    STATIC_ROLES,
+    Box,
+    Fix,
+    cut_bodies,
+    exclude_bodies,
+    merge_outlines,
+)
+from drvs.robot.traffic import Mover, MoverTracker, swept
 from drvs.sim.world import box_footprint
 
 __all__ = [
@@ -38,6 +47,12 @@ MAX_CELLS = 40_000
 (134,400 cells) holds the control loop, and with it the callbacks, for seconds on a loaded machine."""
 BODY_MARGIN = 0.08
 """Metres around the robot's body (placed by its tag) within which moving regions are the robot itself."""
+XY = tuple[float, float]
+MOVER_AREA = 0.3
+"""Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
+(it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
+MAX_AGE = 1.0
+"""Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
 """Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
 
@@ -111,6 +126,10 @@ class MapBuilder:
     :param linger: an empty report keeps a source's outlines this long more.
     :param map_period: at most one ``~map`` per period while the map changes.
     :param resolution: the cell size (default :func:`grid_resolution`).
+    :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
+    :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
+    :param fused: the roles DRVS fuses (one object each already); the outlines of the others
+        from every source are merged into objects (:func:`merge_outlines`).
     """
 
     def __init__(
@@ -123,6 +142,9 @@ class MapBuilder:
         linger: float,
         map_period: float,
         resolution: float | None = None,
+        clearance: float = 0.0,
+        horizon: float = 0.0,
+        fused: Collection[str] = (),
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
@@ -131,32 +153,91 @@ class MapBuilder:
         self.trail = OwnTrail(robot_radius + BODY_MARGIN)
         self.publishing = MapPublishing(map_period)
         self.obstacles = 0  # obstacle outlines in the current grid
-        self._memory_lock = threading.Lock()  # guards _memory: callbacks observe, the control loop reads
+        self.clearance, self.horizon = clearance, horizon
+        self.trackers = {role: MoverTracker() for role in self.obstacle_roles if role not in STATIC_ROLES}
+        self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
+        self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
+        self.fused = frozenset(fused)
+        self._memory_lock = (
+            threading.Lock()
+        )  # guards the fields below: callbacks observe, the control loop reads
         self._memory = ObstacleMemory(ttl)
+        self._velocities: dict[
+            Source, dict[int, Point]
+        ] = {}  # source -> id(outline) -> its velocity, if given
+        self._heard: dict[str, float] = {}  # role -> when a vision system last reported it
 
-    def observe(self, role: str, vision_system: str, outlines: Sequence[Polygon], now: float) -> None:
-        """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while)."""
+    def _kept_clear(self, mover: Mover, now: float) -> Polygon:
+        """The floor something moving holds: its outline, swept from when it was seen to the
+        horizon beyond ``now``, grown by the clearance."""
+        age = min(max(now - mover.seen, 0.0), MAX_AGE) if mover.seen is not None else 0.0
+        area = swept(mover.outline, mover.velocity, self.horizon + age)
+        return area.buffer(self.clearance, 8) if self.clearance > 0 else area
+
+    def observe(
+        self,
+        role: str,
+        vision_system: str,
+        outlines: Sequence[Polygon],
+        now: float,
+        region: Box | None = None,
+        velocities: Sequence[XY | None] | None = None,
+        seen: float | None = None,
+    ) -> None:
+        """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while) in
+        ``region``, the region the robot asked it about: a static role's outlines it reported
+        before outside that region stay. ``velocities``: each outline's, when DRVS tracked them;
+        ``seen``: when the frames were taken (default ``now``)."""
+        region = region if role in STATIC_ROLES else None
+        source = (role, vision_system)
         with self._memory_lock:
-            self._memory.observe((role, vision_system), outlines, now, linger=self.linger)
+            self._heard[role] = max(self._heard.get(role, -math.inf), now if seen is None else seen)
+            if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
+                given = zip(outlines, velocities or (), strict=False)
+                self._velocities[source] = {id(o): v for o, v in given if v is not None}
+            self._memory.observe(source, outlines, now, linger=self.linger, region=region)
 
     def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its
         trail, its body) and its ``station``."""
         with self._memory_lock:
             sources = self._memory.current(now)
+            velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
+            heard = dict(self._heard)
         bodies = [f.outline for f in (fix, station) if f is not None]
         body = own_body(fix, self.robot_size)
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
-        objects = []
+        objects: list[Polygon] = []
         for role in self.obstacle_roles:
-            merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
-            # The fleet's model finds this robot too, as one blob with another robot it touches:
-            # its own body is cut out of those blobs, not the blob dropped.
-            objects.extend(
-                cut_bodies(merged, bodies) if role == FLEET_ROLE else exclude_bodies(merged, bodies)
+            found = [
+                (o, velocities[source].get(id(o)))
+                for source, outlines in sources.items()
+                if source[0] == role
+                for o in outlines
+            ]
+            if role not in self.fused:  # one vision system's outlines each: one polygon per object
+                found = [(o, None) for o in merge_outlines(o for o, _ in found)]
+            if role == FLEET_ROLE:
+                # The fleet's model finds this robot too, as one blob with another robot it touches:
+                # its own body is cut out of those blobs, not the blob dropped.
+                pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], bodies)]
+            else:
+                pieces = [(o, v) for o, v in found if exclude_bodies([o], bodies)]
+            if role in STATIC_ROLES:
+                objects.extend(piece for piece, _ in pieces)
+                continue
+            # Whatever moves (pieces a robot's size at least) keeps ``clearance`` more, over the
+            # floor it sweeps within ``horizon``.
+            big = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
+            movers = self.trackers[role].update(
+                heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]
             )
+            objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
+            objects.extend(self._kept_clear(mover, now) for mover in movers)
+            if role == FLEET_ROLE:
+                self.movers = movers
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)
         return MapUpdate(changes, self.publishing.due(now, bool(changes)))

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from shapely.geometry import Polygon
+from shapely.geometry import Polygon, box
 
 from drvs.robot.dstar_lite import FREE
 
@@ -125,6 +125,17 @@ def crosses_margin(path: Sequence[Cell], costs: np.ndarray) -> bool:
     return any(costs[cell] != FREE for cell in path[free[0] : free[-1] + 1])
 
 
+MIN_KEPT = 1e-3
+"""m²: a piece of an earlier outline outside the region a report is about, smaller than this, is dropped."""
+
+
+def _polygons(shape) -> list[Polygon]:
+    """The polygons of a shapely geometry (a polygon, a collection of them, or nothing)."""
+    return [
+        part for part in getattr(shape, 'geoms', [shape]) if part.geom_type == 'Polygon' and not part.is_empty
+    ]
+
+
 Source = tuple[str, str]
 """Who reported outlines: (role, vision system)."""
 
@@ -133,18 +144,38 @@ class ObstacleMemory:
     """The latest outlines per source, each forgotten ``ttl`` seconds after it was last heard."""
 
     def __init__(self, ttl: float):
-        if not (ttl > 0 and math.isfinite(ttl)):
+        if not ttl > 0:
             raise OccupancyError(f'obstacle_ttl: expected a positive number of seconds, got {ttl}')
         self.ttl = ttl
         self._sources: dict[Source, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)
 
-    def observe(self, source: Source, outlines: Sequence[Polygon], now: float, linger: float = 0.0) -> None:
-        """``source`` reports everything it now sees: its earlier outlines are replaced.
+    def observe(
+        self,
+        source: Source,
+        outlines: Sequence[Polygon],
+        now: float,
+        linger: float = 0.0,
+        region: tuple[float, float, float, float] | None = None,
+    ) -> None:
+        """``source`` reports everything it now sees (in ``region``): its earlier outlines are
+        replaced (there).
 
         :param linger: a report of nothing keeps the outlines it replaces this many seconds
             more (never beyond their ``ttl``): an obstacle that vanishes from one report (a
             person who stopped fades out of a motion model) is not driven into at once.
+        :param region: the region the report is about, for obstacles that stand still: what
+            the source reported before outside it stays (the robot asked elsewhere, the
+            obstacle is still there). None: the report is about everything.
         """
+        if region is not None and source in self._sources:
+            outside = box(*region)
+            kept = [
+                piece
+                for before in self._sources[source][1]
+                for piece in _polygons(before.difference(outside))
+                if piece.area >= MIN_KEPT
+            ]
+            outlines = [*outlines, *kept]
         if not outlines and linger > 0 and source in self._sources:
             until, before = self._sources[source]
             self._sources[source] = (min(until, now + linger), before)

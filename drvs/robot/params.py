@@ -35,6 +35,19 @@ class RobotParams(Settings):
         'one-shot requests every control tick)',
         check=one_of(WATCH, POLL),
     )
+    fused: bool = param(
+        True,
+        'ask DRVS for fused answers about the station, people and other robots: one callback per '
+        'request or watch period from the fusion stage, every object once, tracked, with its velocity '
+        '(itself and static obstacles: per camera); false: one callback per vision system (the paper)',
+    )
+    fused_period: float = param(
+        0.5,
+        'with `~fused`, the evaluation period asked for moving obstacles (people, other robots; '
+        'per camera: the control period)',
+        unit='s',
+        check=POSITIVE,
+    )
     rate: float = param(
         5.0, 'control ticks (and, polling, rounds of DRVS requests) per second', unit='Hz', check=POSITIVE
     )
@@ -89,6 +102,36 @@ class RobotParams(Settings):
         'a repaired plan straying further from the old route counts as a re-plan',
         unit='m',
         check=POSITIVE,
+    )
+    answer_wait: float = param(
+        0.5,
+        'a new plan is followed once the obstacles of its corridor were asked about and answered: '
+        'by every vision system asked, or this long after DRVS accepted the call',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    robot_clearance: float = param(
+        0.15,
+        'other robots (the `robot` role) are kept clear by this much more than `~robot_radius`, '
+        'over the floor they sweep in `~traffic_horizon`',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
+    traffic_horizon: float = param(
+        1.0,
+        "how far ahead the other robots' motion is predicted: the floor they sweep meanwhile is an "
+        'obstacle, and a closest approach within it under twice `~robot_radius` (plus 5 cm) makes '
+        'the robot give way',
+        unit='s',
+        check=NON_NEGATIVE,
+    )
+    yield_patience: float = param(
+        1.0,
+        'the longest the robot gives way to one robot, plus half as much again for each robot of '
+        'the world whose name sorts before its own (two robots giving way to each other do not wait '
+        'for ever); then it drives on, round the other',
+        unit='s',
+        check=NON_NEGATIVE,
     )
     map_period: float = param(
         1.0,

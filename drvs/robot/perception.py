@@ -89,10 +89,12 @@ class RegionPolicy:
         position: Point | None,
         velocity: Point = (0.0, 0.0),
         lost: Collection[str] = (),
+        corridor: Box | None = None,
     ) -> dict[str, Region]:
         """Role -> region, from the newest fixes, the predicted ``position`` (None: the fix's), the
-        commanded ``velocity`` and the roles whose vision systems all say they see nothing of it
-        (``lost``)."""
+        commanded ``velocity``, the roles whose vision systems all say they see nothing of it
+        (``lost``) and the ``corridor`` of the robot's plan (:attr:`Controller.corridor
+        <drvs.robot.controller.Controller.corridor>`), which the obstacle roles must cover."""
         floor, size, margin = whole_floor(self.floor_size), self.floor_size, self.self_margin
         regions = dict.fromkeys(LOCALISATION_ROLES, Region(floor, floor))
         here = position or (fix.position if fix is not None else None)
@@ -118,6 +120,10 @@ class RegionPolicy:
             roi = spanned(here, station.position, self.roi_margin, size)
             roi = _union(roi, spanned(heading, station.position, self.roi_margin, size))
             needed = spanned(here, station.position, self.roi_margin / 2, size)
+            if corridor is not None and corridor[0] <= corridor[2]:
+                needed = _union(needed, corridor)
+                low, high = corridor[:2], corridor[2:]
+                roi = _union(roi, spanned(low, high, self.roi_margin / 2, size))
             regions.update(dict.fromkeys(self.obstacle_roles, Region(roi, needed)))
         return regions
 
@@ -259,6 +265,7 @@ class Answer:
     stamp: float
     outlines: tuple[Polygon, ...]
     poses: tuple[tuple[float, float, float], ...] = ()  # (x, y, yaw) of each tag, for apriltag
+    velocities: tuple[Point | None, ...] = ()  # each outline's, when the callback gives them (fused)
 
 
 Held = tuple[float, list[Polygon], tuple]
@@ -277,9 +284,17 @@ class Perception:
     :param algorithms: role -> algorithm string; every role of :data:`ROLES`, maybe more.
     :param watch_prefix: the watch ids' prefix (the node's name).
     :param watch_keep: seconds a watch answer stands at most (the watches' duration).
+    :param fused: the roles DRVS fuses (one object each already); the outlines of a round of the
+        others (several vision systems) are merged into objects (:func:`merge_outlines`).
     """
 
-    def __init__(self, algorithms: dict[str, str], watch_prefix: str = '', watch_keep: float = math.inf):
+    def __init__(
+        self,
+        algorithms: dict[str, str],
+        watch_prefix: str = '',
+        watch_keep: float = math.inf,
+        fused: Collection[str] = (),
+    ):
         missing = [role for role in ROLES if role not in algorithms]
         if missing:
             raise PerceptionError(f'colour_models: missing role(s) {", ".join(missing)}')
@@ -287,6 +302,7 @@ class Perception:
         self.obstacle_roles = tuple(role for role in self.algorithms if role not in LOCALISATION_ROLES)
         self.requests = RequestBook(tuple(self.algorithms), watch_prefix)
         self.watch_keep = watch_keep
+        self.fused = frozenset(fused)
         self._rounds: dict[str, _Round | None] = {role: None for role in LOCALISATION_ROLES}
         self._views: dict[str, dict[str, Held]] = {role: {} for role in LOCALISATION_ROLES}
         self._fixes: dict[str, Fix | None] = {role: None for role in LOCALISATION_ROLES}
@@ -310,8 +326,11 @@ class Perception:
         vision_system: str,
         stamp: float,
         outlines: Iterable[Sequence[Sequence[float]]],
+        velocities: Iterable[Point | None] | None = None,
     ) -> Answer | None:
         """Take one callback; return the accepted answer, or None when it was superseded.
+
+        ``velocities``: each outline's (a fused callback's tracks'), in the answer beside its polygon.
 
         :raises PerceptionError: for an id this robot never issued, or an
             algorithm that is not the one the id's role asks with.
@@ -323,13 +342,17 @@ class Perception:
                 f'the answer says {algorithm!r}'
             )
         outlines = [list(points) for points in outlines]
-        polygons = tuple(p for p in (to_polygon(points) for points in outlines) if p is not None)
+        given = list(velocities) if velocities is not None else [None] * len(outlines)
+        if len(given) != len(outlines):
+            raise PerceptionError(f'velocities: expected {len(outlines)}, one per outline, got {len(given)}')
+        kept = [(p, v) for p, v in zip(map(to_polygon, outlines), given, strict=True) if p is not None]
+        polygons = tuple(p for p, _ in kept)
         poses: tuple[tuple[float, float, float], ...] = ()
         if algorithm.split(':', 1)[0] == 'apriltag':
             from drvs.algorithms.apriltag import tag_pose
 
             poses = tuple(tag_pose(points) for points in outlines if len(points) == 4)
-        answer = Answer(role, seq, vision_system, stamp, polygons, poses)
+        answer = Answer(role, seq, vision_system, stamp, polygons, poses, tuple(v for _, v in kept))
         if seq == WATCH:
             return answer if self._watched(answer) else None
         if role in LOCALISATION_ROLES:
@@ -375,7 +398,8 @@ class Perception:
 
     def _make_fix(self, role: str, answers: dict[str, Held], seq: int, stamp: float) -> None:
         """The fix of ``role`` from the merged outlines of ``answers`` (vision system -> answer)."""
-        objects = merge_outlines(o for _, outlines, _ in answers.values() for o in outlines)
+        outlines = [o for _, found, _ in answers.values() for o in found]
+        objects = outlines if role in self.fused else merge_outlines(outlines)
         if not objects:
             return
         previous = self._fixes[role]

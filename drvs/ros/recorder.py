@@ -111,6 +111,7 @@ class RunRecorder:
         # Tracking counts from the first sample on: a bag has tracks from before the live recorder
         # subscribed, and both must measure the same periods.
         self._sampled = False
+        self._touching: dict[str, set[str]] = {}  # robot -> what it touched in the last ground truth
 
     @property
     def closed(self) -> bool:
@@ -159,6 +160,10 @@ class RunRecorder:
                 x, y = robots[name]['position']
                 self._robot_position[name] = (x, y)
                 robot.collisions = int(robots[name]['contacts'])
+                touching = set(robots[name].get('touching', ()))
+                for other in sorted(touching - self._touching.get(name, set())):
+                    robot.touches.append((other, x, y))
+                self._touching[name] = touching
                 robot.travelled = float(robots[name]['travelled'])
                 last = self._last_trace.get(name)
                 if last is None or math.dist(last, (x, y)) >= TRACE_STEP:

@@ -20,19 +20,27 @@ from drvs.common.guard import RESTART, SHUTDOWN
 from drvs.common.health import Health, robot_health
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
+from drvs.robot.asked import AskedFloor
 from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
 from drvs.robot.mapping import MapBuilder
 from drvs.robot.mission import (
+    FAIL,
+    SKIP,
+    USE,
     Coverage,
     callback_stamp,
     fleet_robot,
+    fused_outcome,
+    fused_role,
     mission_end,
+    obstacle_memory_ttl,
     post_round,
     schedule_for,
 )
 from drvs.robot.params import WATCH, RobotParams
 from drvs.robot.perception import LOCALISATION_ROLES, Perception, PerceptionError, RegionPolicy, whole_floor
 from drvs.robot.poll_schedule import ACCEPT, RETRY, Request
+from drvs.robot.traffic import YIELD_MARGIN, Yielding
 from drvs.robot.watch_schedule import WatchCall
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.messages import occupancy_to_msg, path_to_msg, pose_to_msg, robot_status_to_msg
@@ -75,7 +83,12 @@ class BlindRobot:
         if self.robot_radius is None:  # the circle that holds the body whatever its heading
             self.robot_radius = math.hypot(size[0], size[1]) / 2
         self.watching = params.requests == WATCH
-        self.perception = Perception(me.colour_models, rospy.get_name(), watch_keep=params.watch_duration)
+        self.fused = params.fused
+        fused = [role for role in me.colour_models if fused_role(params, role)]
+        self.perception = Perception(
+            me.colour_models, rospy.get_name(), watch_keep=params.watch_duration, fused=fused
+        )
+        self.asked = AskedFloor(self.perception.obstacle_roles, params.answer_wait)
         self.regions = RegionPolicy(
             self.floor_size,
             self.perception.obstacle_roles,
@@ -89,12 +102,20 @@ class BlindRobot:
             tuple(size[:2]),
             self.robot_radius,
             self.perception.obstacle_roles,
-            # A watch's vision systems re-report in full at each renewal: outlines of a dead one expire.
-            ttl=params.watch_duration if self.watching else params.obstacle_ttl,
+            ttl=obstacle_memory_ttl(params),
             # A watch's "all gone" keeps the outlines ~obstacle_ttl more, as polling would.
             linger=params.obstacle_ttl,
             map_period=params.map_period,
             resolution=params.resolution,
+            clearance=params.robot_clearance,
+            horizon=params.traffic_horizon,
+            fused=fused,
+        )
+        rank = sorted(robot.name for robot in world.robots).index(me.name)
+        self.yielding = Yielding(
+            params.traffic_horizon,
+            distance=2 * self.robot_radius + YIELD_MARGIN,
+            patience=params.yield_patience * (1 + rank / 2),
         )
         self.settings = ControllerSettings(
             speed=self.speed,
@@ -104,15 +125,17 @@ class BlindRobot:
             lookahead=params.lookahead,
             replan_distance=params.replan_distance,
             route_tolerance=params.route_tolerance,
+            corridor_margin=params.roi_margin / 2,
         )
         self.schedule = schedule_for(params, tuple(me.colour_models), clock=rospy.get_time)
         self.controller: Controller | None = None  # from start()
         self.coverage: Coverage | None = None  # from start()
-        self._lock = threading.Lock()  # guards perception and coverage, and orders the map's observations
+        self._lock = threading.Lock()  # guards perception, asked and coverage; orders the map's observations
         self._requests = threading.Condition()  # guards schedule; wakes the requester for a new round
         self._tracking = False  # whether the robot's own region is around it (else the whole floor)
         self._done = threading.Event()
         self._last_path: list | None = None
+        self._refused: tuple[str, str] | None = None  # (role, message): a fused answer every camera refused
         self._client: ServiceClient | None = None
         self.node = NodeScaffold(self.health, COUNTERS, hardware_id=rospy.get_name().rsplit('/', 1)[-1])
 
@@ -132,7 +155,7 @@ class BlindRobot:
         self._service = rospy.Service('~callback_coordinates', CallbackCoordinates, self._on_callback)
         self._wait_for_clock()
         started_at = rospy.get_time()
-        self.controller = Controller(self.map.grid, self.settings, now=started_at)
+        self.controller = Controller(self.map.grid, self.settings, now=started_at, yielding=self.yielding)
         self.coverage = Coverage(self.params.fix_timeout, started_at)
         rospy.on_shutdown(self.node.stopping.set)
         self.node.spawn(self._request_loop, 'requester', RESTART)
@@ -140,10 +163,11 @@ class BlindRobot:
         self.node.start()
         rospy.on_shutdown(self.node.diagnostics.stop)
         rospy.loginfo(
-            'blind robot: radius %.3f m, speed %.2f m/s, %s %s at %.1f Hz',
+            'blind robot: radius %.3f m, speed %.2f m/s, %s%s %s at %.1f Hz',
             self.robot_radius,
             self.speed,
             'watching with' if self.watching else 'polling',
+            ' fused' if self.fused else '',
             service[0],
             self.params.rate,
         )
@@ -187,20 +211,46 @@ class BlindRobot:
         received = rospy.get_time()
         stamp = callback_stamp(req.stamp.to_sec(), received)
         outlines = [polygon_to_points(obj.boundary) for obj in req.objects]
+        velocities = [(obj.velocity.x, obj.velocity.y) if obj.track_id else None for obj in req.objects]
         serialized = io.BytesIO()
         req.serialize(serialized)
         self.node.counters.add(callbacks=1, callback_bytes=serialized.tell())
+        outcome = fused_outcome(req.status) if req.fused else USE
         with self._lock:
             try:
-                answer = self.perception.accept(
-                    req.algorithm, req.request_id, req.vision_system, stamp, outlines
-                )
+                if outcome != USE:
+                    role, _ = self.perception.requests.parse(req.request_id)
+                    if outcome == FAIL:
+                        self._refused = (role, req.message)
+                    answer = None
+                else:
+                    answer = self.perception.accept(
+                        req.algorithm, req.request_id, req.vision_system, stamp, outlines, velocities
+                    )
             except PerceptionError as error:
                 refused = error  # logged once the lock is released
             else:
                 refused = None
                 if answer is not None and answer.role in self.map.obstacle_roles:
-                    self.map.observe(answer.role, answer.vision_system, answer.outlines, received)
+                    region = self.asked.region(answer.role)
+                    self.map.observe(
+                        answer.role,
+                        answer.vision_system,
+                        answer.outlines,
+                        received,
+                        region,
+                        answer.velocities,
+                        stamp,
+                    )
+                    self.asked.heard(answer.role, answer.vision_system, stamp)
+        if outcome == SKIP:
+            self.node.log_throttled(
+                'fused skipped',
+                rospy.logdebug,
+                'a fused callback said nothing (%s): %s',
+                status_name(req.status),
+                req.message,
+            )
         if refused is not None:
             self.node.counters.add(refused_callbacks=1)
             self.node.log_throttled(
@@ -241,11 +291,13 @@ class BlindRobot:
         with self._lock:
             request_id = self.perception.requests.issue(role)
             algorithm = self.perception.algorithms[role]
+        sent = rospy.get_time()
         message = DetectObjectBoundaryRequest(
             algorithm=algorithm,
             region_of_interest=box_to_msg(request.region_of_interest),
             callback_service=self.callback_service,
             request_id=request_id,
+            fused=fused_role(self.params, role),
         )
         try:
             response = self._client.call(message)
@@ -263,13 +315,14 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
-        self._answered(role, f'request {request_id}', outcome, response)
+        self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest, sent)
 
     def _send_watch(self, call: WatchCall) -> None:
         role = call.role
         with self._lock:
             request_id = self.perception.requests.watch_id(role)
             algorithm = self.perception.algorithms[role]
+        sent = rospy.get_time()
         rospy.logdebug(
             'watch %s (%s) in %s for %g s', request_id, call.reason, call.region_of_interest, call.duration
         )
@@ -281,6 +334,7 @@ class BlindRobot:
             period=call.period,
             duration=call.duration,
             changes_only=True,
+            fused=fused_role(self.params, role),
         )
         try:
             response = self._client.call(message)
@@ -305,13 +359,21 @@ class BlindRobot:
                 role, response.status, response.duration, response.retry_after, response.message
             )
         if call.duration:
-            self._answered(role, f'watch {request_id} ({call.reason})', outcome, response)
+            self._answered(
+                role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest, sent
+            )
 
-    def _answered(self, role: str, what: str, outcome, response) -> None:
-        """Act on the outcome of an answered call (``what`` names it in the log)."""
+    def _answered(self, role: str, what: str, outcome, response, region, sent: float) -> None:
+        """Act on the outcome of an answered call over ``region``, sent at ``sent`` (``what``
+        names it in the log)."""
         if outcome.action == ACCEPT:
+            now = rospy.get_time()
             with self._lock:
-                self.coverage.accepted(role, response.vision_systems, rospy.get_time())
+                self.coverage.accepted(role, response.vision_systems, now)
+                # Fused, one callback answers for every vision system DRVS asked.
+                fused = fused_role(self.params, role)
+                asked = min(response.vision_systems, 1) if fused else response.vision_systems
+                self.asked.accepted(role, region, sent, now, asked)
         elif outcome.action == RETRY:
             self.node.log_throttled(
                 ('refused', response.status),
@@ -331,7 +393,10 @@ class BlindRobot:
         tick, around where it is.
         """
         velocity = velocity if self.watching else (0.0, 0.0)
-        regions = self.regions.regions(now, fix, station, self.controller.position, velocity, lost)
+        controller = self.controller
+        regions = self.regions.regions(
+            now, fix, station, controller.position, velocity, lost, controller.corridor
+        )
         tracking = regions['self'].box != whole_floor(self.floor_size)
         if tracking != self._tracking:
             self._tracking = tracking
@@ -368,6 +433,8 @@ class BlindRobot:
         controller = self.controller
         with self._requests:
             invalid = self.schedule.invalid
+        with self._lock:
+            invalid = invalid or self._refused
         if invalid is not None:
             role, message = invalid
             controller.fail(f'DRVS refused the {role} request: {message}')
@@ -375,6 +442,7 @@ class BlindRobot:
             fix, station = (self.perception.fix(role) for role in LOCALISATION_ROLES)
             lost = [role for role in LOCALISATION_ROLES if self.perception.lost(role)]
             uncovered = self.coverage.failure(now)
+            known = self.asked.known(now)
         update = self.map.update(now, fix, station)
         if update.changes:
             controller.on_map_changed(update.changes)
@@ -383,7 +451,7 @@ class BlindRobot:
             self.map_pub.publish(occupancy_to_msg(grid.occupancy(), grid.spec.resolution, now))
         if uncovered is not None:
             controller.fail(uncovered)
-        vx, vy = controller.step(now, fix, station)
+        vx, vy = controller.step(now, fix, station, known, self.map.movers)
         self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
         self._post_round(now, fix, station, (vx, vy), lost)
         self._publish(now)

@@ -472,15 +472,6 @@ class DrvsServer:
         algorithm, region = self._request_fields(request) if stands else ('', (0.0, 0.0, 0.0, 0.0))
         key = (caller, request.request_id)
         forward_as = None
-        with self.fusion.lock:
-            if stands and request.fused:
-                period = max(request.period, self.settings.min_watch_period)
-                wire_id = self.fusion.stage.set_watch(
-                    key, request.algorithm, region, request.callback_service, period, request.changes_only
-                )
-                forward_as = (self.fusion.service_name, wire_id)
-            else:
-                self.fusion.stage.drop_watch(key)
         if stands:
             self._check_callback(request.callback_service)
             with self._watch_lock:
@@ -490,6 +481,17 @@ class DrvsServer:
                 # vision systems that will come, as it did when the last one running it left.
                 check_supported(self.registry.available_algorithms(), algorithm)
         with self._watch_lock:
+            # The fusion stage's watch and the table's change together (the watch loop keeps the
+            # stage's watches that the table has, under both locks).
+            with self.fusion.lock:
+                if stands and request.fused:
+                    period = max(request.period, self.settings.min_watch_period)
+                    wire_id = self.fusion.stage.set_watch(
+                        key, request.algorithm, region, request.callback_service, period, request.changes_only
+                    )
+                    forward_as = (self.fusion.service_name, wire_id)
+                else:
+                    self.fusion.stage.drop_watch(key)
             try:
                 answer = self.watches.request(
                     caller,
@@ -563,8 +565,8 @@ class DrvsServer:
                 self._submit(self.watches.sync())
                 due = self.watches.next_due()
                 fused = {w.key: self.watches.serving(w.key) for w in self.watches.standing() if w.forward_as}
-            with self.fusion.lock:
-                self.fusion.stage.keep_watches(fused)
+                with self.fusion.lock:
+                    self.fusion.stage.keep_watches(fused)
             self.forwarder.watch_clients.expire()
             wait = WATCH_WAIT if due is None else min(max(due - rospy.get_time(), 0.001), WATCH_WAIT)
             self._watch_wake.wait(wait)

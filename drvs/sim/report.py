@@ -63,6 +63,7 @@ class RobotRecord:
     reason: str = ''
     replans: int = 0
     collisions: int = 0
+    touches: list[tuple[str, float, float]] = field(default_factory=list)  # (what, x, y) of each contact seen
     travelled: float = 0.0  # metres its body moved (world_sim's odometer): the driven length
     requests: int = 0
     watch_calls: int = 0
@@ -167,6 +168,44 @@ def _rounded(value: float, digits: int) -> float | None:
     return round(value, digits) if math.isfinite(value) else None
 
 
+COLLISION_FAILS = "a collision fails a blind robot's mission"
+"""What the summary's reason adds to a robot's collisions: they fail the run whatever else happened."""
+
+
+def collision_reason(robot: RobotRecord) -> str:
+    """Why ``robot``'s collisions fail the run ('' without any): how many, and what it touched where.
+
+    >>> collision_reason(RobotRecord('robot1', collisions=2, touches=[('robot2', 9.31, 3.84)]))
+    "robot1 collided 2 times (robot2 at (9.3, 3.8), ...): a collision fails a blind robot's mission"
+    """
+    if robot.collisions <= 0:
+        return ''
+    places = [f'{what} at ({x:.1f}, {y:.1f})' for what, x, y in robot.touches[: robot.collisions]]
+    if len(places) < robot.collisions:
+        places.append('...')  # touches between two ground truths the recorder saw
+    times = 'once' if robot.collisions == 1 else f'{robot.collisions} times'
+    return f'{robot.name} collided {times} ({", ".join(places)}): {COLLISION_FAILS}'
+
+
+def run_reason(rows: list[dict]) -> str:
+    """Why a run with the summary rows ``rows`` failed ('' when every robot reached its station
+    without a collision): each robot that did not reach it, and each collision."""
+    reasons = []
+    for row in rows:
+        if not row['reached']:
+            why = f'{row["state"]}: {row["reason"]}' if row['reason'] else row['state']
+            reasons.append(f'{row["name"]} did not reach its station ({why})')
+        if row['collisions']:
+            reasons.append(row['collided'])
+    return '; '.join(reasons)
+
+
+def collision_failure(summary: dict) -> str:
+    """Why the collisions in a ``summary.json`` content fail the run ('' without any): the
+    ``collided`` text of each robot that collided. ``run_scenario.sh`` exits 1 on it."""
+    return '; '.join(row['collided'] for row in summary.get('robots', ()) if row.get('collisions'))
+
+
 def robot_row(robot: RobotRecord, best_length: float) -> dict:
     """A robot's row of the summary: outcome, lengths and its figures."""
     return {
@@ -174,6 +213,7 @@ def robot_row(robot: RobotRecord, best_length: float) -> dict:
         'reached': bool(robot.reached),
         'state': robot.state,
         'reason': robot.reason,
+        'collided': collision_reason(robot),
         'collisions': robot.collisions,
         'elapsed': round(robot.elapsed, 2),
         'arrival': round(robot.elapsed, 2) if robot.reached else None,
@@ -184,18 +224,23 @@ def robot_row(robot: RobotRecord, best_length: float) -> dict:
     }
 
 
-SINGLE_ROBOT_KEYS = ('state', 'reason', 'driven_length', 'best_length')
+SINGLE_ROBOT_KEYS = ('state', 'driven_length', 'best_length')
 """A lone robot's row keys repeated at the top level of the summary (its other keys are totals)."""
 
 
 def summary(record: RunRecord, best_length: Mapping[str, float]) -> dict:
     """The ``summary.json`` content: outcome, a row per robot, the totals, traffic, time and CPU.
 
-    ``best_length``: each robot's hindsight route length, by name (:func:`best_lengths`).
+    ``success`` is every robot at its station without a collision, ``reason`` why not
+    (:func:`run_reason`). ``best_length``: each robot's hindsight route length, by name
+    (:func:`best_lengths`).
     """
     rows = [robot_row(robot, best_length.get(name, math.inf)) for name, robot in record.robots.items()]
+    reason = run_reason(rows)
     result = {
         'world': str(record.world.path),
+        'success': not reason,
+        'reason': reason,
         'reached': all(row['reached'] for row in rows),
         'elapsed': max((row['elapsed'] for row in rows), default=0.0),
         'replans': sum(row['replans'] for row in rows),

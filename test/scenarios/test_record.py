@@ -104,10 +104,17 @@ def truth(t, x, y, contacts=0, travelled=0.0):
     return String(data=json.dumps({**data, 'objects': {}}))
 
 
-def fleet_truth(t, robots):
-    """world_sim's ground truth of a fleet: ``robots`` {name: (x, y, contacts, travelled)}."""
+def fleet_truth(t, robots, touching=None):
+    """world_sim's ground truth of a fleet: ``robots`` {name: (x, y, contacts, travelled)},
+    ``touching`` {name: [what it touches now]}."""
+    touching = touching or {}
     robots = {
-        name: {'position': [x, y], 'contacts': contacts, 'travelled': travelled}
+        name: {
+            'position': [x, y],
+            'contacts': contacts,
+            'travelled': travelled,
+            'touching': touching.get(name, []),
+        }
         for name, (x, y, contacts, travelled) in robots.items()
     }
     first = dict(next(iter(robots.values())))
@@ -276,10 +283,12 @@ colour_models:
 def a_fleet_run(world):
     """(topic, message, seen live) of a run of two robots: robot1 arrives, robot2 fails."""
 
-    def at(t, one, two, contacts=(0, 0)):
+    def at(t, one, two, contacts=(0, 0), touching=None):
         travelled = math.dist((1.0, 3.0), one), 0.0  # robot1 drives, robot2 stays
         return fleet_truth(
-            t, {'robot1': (*one, contacts[0], travelled[0]), 'robot2': (*two, contacts[1], travelled[1])}
+            t,
+            {'robot1': (*one, contacts[0], travelled[0]), 'robot2': (*two, contacts[1], travelled[1])},
+            touching,
         )
 
     robots = 'colour:0,150,0,255,255,80'  # the world's robot model
@@ -308,6 +317,7 @@ def a_fleet_run(world):
         ('/robot2/map', grid_map(100), True),
         ('/robot1/status', status(4.0, 'moving', replans=1, requests=5, watch_calls=5), True),
         ('/robot1/path', path(4.0, [(2.0, 3.0), (5.0, 1.0)]), True),
+        ('/world_sim/ground_truth', at(4.5, (4.0, 3.0), (1.0, 1.0), (0, 1), {'robot2': ['box']}), True),
         ('/world_sim/ground_truth', at(5.0, (5.0, 3.0), (1.0, 1.0), contacts=(0, 2)), True),
         ('/robot1/status', status(6.0, 'arrived', 1, '', requests=6, watch_calls=6, callbacks=30), True),
         ('/robot2/status', status(7.5, 'failed', 0, 'no route', callbacks=4, callback_bytes=999), True),
@@ -347,6 +357,12 @@ def test_a_bag_of_a_fleet_run_gives_a_row_per_robot_and_the_figures(tmp_path):
         1,
         2,
     )
+    # Where it touched what, as far as the ground truths the recorder saw tell.
+    assert two['collided'] == (
+        "robot2 collided 2 times (box at (1.0, 1.0), ...): a collision fails a blind robot's mission"
+    )
+    assert (one['collided'], summary['success']) == ('', False)
+    assert summary['reason'] == f"robot2 did not reach its station (failed: no route); {two['collided']}"
     assert summary['server']['requests'] == 12  # not 99: that came after the end
     assert (summary['server']['watch_requests'], summary['server']['forwards']) == (3, 24)
     vs1 = summary['vision_systems']['vs1']

@@ -28,6 +28,7 @@ OPTIONS = [
     '--stay',
     '--camera-source',
     '--requests',
+    '--fused',
     '--rviz',
     '--record',
     '--hosts',

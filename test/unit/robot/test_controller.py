@@ -1,11 +1,23 @@
 """Controller logic in a small kinematic simulation with late fixes (no ROS)."""
 
-import pytest
-from shapely.geometry import Point, box
+import random
 
-from drvs.robot.controller import ARRIVED, BLOCKED, FAILED, Controller, ControllerSettings, DeadReckoning
+import pytest
+from shapely.geometry import LineString, Point, box
+
+from drvs.robot.asked import inside
+from drvs.robot.controller import (
+    ARRIVED,
+    BLOCKED,
+    FAILED,
+    MOVING,
+    Controller,
+    ControllerSettings,
+    DeadReckoning,
+)
 from drvs.robot.occupancy import CostGrid, GridSpec
 from drvs.robot.perception import Fix
+from drvs.robot.traffic import Mover, Yielding
 
 SPEC = GridSpec((3.0, 2.0), 0.05)
 RADIUS = 0.15 * 2**0.5  # half the diagonal of a 0.3 m robot
@@ -19,11 +31,24 @@ def fix_at(position, stamp, seq):
 
 
 class Sim:
-    """The true robot moves with the commanded velocity; fixes arrive ``latency`` s after capture."""
+    """The true robot moves with the commanded velocity in ``map`` (world_sim's holonomic robot);
+    fixes arrive ``latency`` s after capture, off by gaussian ``noise`` (m, seeded)."""
 
-    def __init__(self, start, obstacles=(), latency=0.2, period=0.1, settings=None):
-        self.grid = CostGrid(SPEC, RADIUS)
+    def __init__(
+        self,
+        start,
+        obstacles=(),
+        latency=0.2,
+        period=0.1,
+        settings=None,
+        spec=SPEC,
+        station=STATION,
+        noise=0.0,
+    ):
+        self.grid = CostGrid(spec, RADIUS)
         self.controller = Controller(self.grid, settings or ControllerSettings(speed=0.5), now=0.0)
+        self.station = station
+        self.noise, self.rng = noise, random.Random(7)
         self.true = start
         self.now = 0.0
         self.latency, self.period = latency, period
@@ -37,15 +62,16 @@ class Sim:
         self.obstacles = list(obstacles)
         self.controller.on_map_changed(self.grid.apply(self.obstacles))
 
-    def run(self, seconds, until=None, fixes=True):
+    def run(self, seconds, until=None, fixes=True, known=None):
         for _ in range(int(round(seconds / self.period))):
             if fixes:
                 self.captures.append((self.now, self.true))
                 while self.captures and self.captures[0][0] <= self.now - self.latency:
-                    stamp, position = self.captures.pop(0)
+                    stamp, (x, y) = self.captures.pop(0)
                     self.seq += 1
-                    self.fix = fix_at(position, stamp, self.seq)
-            vx, vy = self.controller.step(self.now, self.fix, fix_at(STATION, 0.0, 1))
+                    seen = (x + self.rng.gauss(0.0, self.noise), y + self.rng.gauss(0.0, self.noise))
+                    self.fix = fix_at(seen, stamp, self.seq)
+            vx, vy = self.controller.step(self.now, self.fix, fix_at(self.station, 0.0, 1), known)
             self.true = (self.true[0] + vx * self.period, self.true[1] + vy * self.period)
             self.trace.append(self.true)
             self.now += self.period
@@ -77,6 +103,24 @@ def test_reaches_the_station_despite_late_fixes():
     assert sim.controller.replans == 0
 
 
+@pytest.mark.parametrize('noise', [0.0, 0.01])
+@pytest.mark.parametrize('station', [(3.6, 2.3), (3.6, 0.9), (1.2, 2.6)])
+def test_follows_a_straight_plan_at_any_angle_within_a_few_centimetres(station, noise):
+    # On an open floor the plan is one straight segment, whatever D* Lite's 8-connected staircase;
+    # after settling the true robot stays within 3 cm of it, with late (and noisy) fixes.
+    start = (0.4, 0.5)
+    sim = Sim(start, spec=GridSpec((4.0, 3.0), 0.05), station=station, noise=noise)
+    sim.run(1.0)
+    plan = sim.controller.path
+    line = LineString([plan[0], plan[-1]])
+    assert plan[-1] == pytest.approx(station) and Point(plan[0]).distance(Point(start)) < 4 * noise + 1e-9
+    assert max(line.distance(Point(p)) for p in plan) < 1e-9
+    sim.run(20)
+    assert sim.controller.state == ARRIVED and sim.controller.path == plan
+    settled = [p for p in sim.trace if Point(p).distance(Point(start)) > 0.3]
+    assert max(line.distance(Point(p)) for p in settled) < 0.03
+
+
 def test_replans_around_an_obstacle_that_appears_on_the_path():
     sim = Sim((0.4, 1.0))
     sim.run(10, until=lambda s: s.true[0] > 1.0)
@@ -85,6 +129,53 @@ def test_replans_around_an_obstacle_that_appears_on_the_path():
     assert sim.controller.state == ARRIVED
     assert sim.controller.replans >= 1
     assert clearance(sim) > 0.15  # the body (half width 0.15 m) never touched it
+
+
+def test_a_plan_over_floor_not_asked_about_waits_for_the_answers():
+    # The robot knows the obstacles of a band around the straight way only; a box across it
+    # makes the way round leave the band: the robot stops, keeps its old plan, and follows the
+    # new one only once the floor around it is known.
+    band = (0.0, 0.5, 3.0, 1.5)
+    sim = Sim((0.4, 1.0))
+    sim.run(10, until=lambda s: s.true[0] > 1.0, known=band)
+    assert sim.controller.pending is None and inside(sim.controller.corridor, band)
+    followed = sim.controller.path
+    sim.set_obstacles([box(1.5, 0.45, 1.8, 1.55)])
+    sim.run(1.0, known=band)
+    stopped = sim.true
+    assert sim.controller.pending is not None and not inside(sim.controller.corridor, band)
+    assert sim.controller.path is followed and sim.controller.replans == 0
+    assert sim.controller.state == MOVING and sim.controller.step(
+        sim.now, sim.fix, fix_at(STATION, 0, 1), band
+    ) == (0, 0)
+    sim.run(1.0, known=band)
+    assert sim.true == stopped  # it waits
+    sim.run(20, known=(0.0, 0.0, 3.0, 2.0))  # answered: the whole floor
+    assert sim.controller.state == ARRIVED and sim.controller.replans == 1
+    assert clearance(sim) > 0.15
+
+
+def test_no_answers_about_the_floor_of_a_plan_fail_after_the_unreachable_timeout():
+    sim = Sim((0.4, 1.0), settings=ControllerSettings(speed=0.5, unreachable_timeout=2.0))
+    sim.run(5, known=(0.0, 0.0, 1.0, 1.0))
+    assert sim.controller.state == FAILED and sim.true == (0.4, 1.0)
+    assert sim.controller.reason == (
+        'no answers about the floor of its plan (obstacles in (0.03, 0.62)-(2.98, 1.38)) for 2.0 s'
+    )
+
+
+def test_it_stands_while_it_gives_way_to_another_robot():
+    grid = CostGrid(SPEC, RADIUS)
+    controller = Controller(grid, ControllerSettings(speed=0.5), now=0.0, yielding=Yielding(1.5, 0.47, 1.0))
+    station, here = fix_at(STATION, 0.0, 1), fix_at((0.4, 1.0), 0.0, 1)
+    assert controller.step(0.0, here, station) == pytest.approx((0.5, 0.0))
+    crossing = Mover(box(1.05, 0.45, 1.35, 0.75), (0.0, 0.4))  # will cross its way 0.8 m ahead
+    assert controller.step(0.1, here, station, movers=[crossing]) == (0.0, 0.0)
+    assert controller.yielding_to is crossing and controller.state == MOVING
+    assert controller.dead_reckoning.predict((0.4, 1.0), 0.0, 0.3) == pytest.approx((0.45, 1.0))  # stood
+    passed = Mover(box(1.05, 1.65, 1.35, 1.95), (0.0, 0.4))
+    assert controller.step(0.2, here, station, movers=[passed]) == pytest.approx((0.5, 0.0))
+    assert controller.yielding_to is None
 
 
 def test_changes_far_from_the_path_do_not_replan():

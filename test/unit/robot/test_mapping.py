@@ -117,6 +117,47 @@ def test_another_robot_touching_this_one_keeps_its_own_part():
     assert plain.obstacles == 0  # another model's blob, mostly the robot (and its trail), is dropped whole
 
 
+def test_other_robots_keep_a_clearance_over_the_floor_they_sweep_and_have_a_velocity():
+    mapping = MapBuilder(FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, clearance=0.1, horizon=1.0)
+    me = fix_at((0.5, 0.5))
+    mapping.observe('robot', '/vs1', [box(1.85, 1.35, 2.15, 1.65)], 0.0)
+    mapping.update(0.0, me, None)
+    mapping.observe('robot', '/vs1', [box(1.95, 1.35, 2.25, 1.65)], 0.2)  # 0.5 m/s east
+    mapping.update(0.2, me, None)
+    (other,) = mapping.movers
+    assert other.velocity == pytest.approx((0.25, 0.0))  # half the new estimate (smoothing)
+    # Its body, 0.25 m further east (a second at its speed), 0.1 m more round it: lethal.
+    assert lethal_at(mapping, (2.45, 1.5)) and lethal_at(mapping, (2.1, 1.73))
+    assert not lethal_at(mapping, (2.68, 1.5))
+
+
+def test_fused_the_other_robots_velocities_are_their_tracks_and_nothing_is_merged():
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('robot',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('robot',)
+    )
+    me = fix_at((0.5, 0.5))
+    # The server's one callback: this robot's track (cut out), another robot's, moving north.
+    tracks = [box(0.35, 0.35, 0.65, 0.65), box(1.85, 1.35, 2.15, 1.65)]
+    mapping.observe('robot', '/drvs', tracks, 0.0, velocities=[(0.3, 0.0), (0.0, 0.5)])
+    mapping.update(0.0, me, None)
+    (other,) = mapping.movers
+    assert other.velocity == (0.0, 0.5) and other.position == pytest.approx((2.0, 1.5))
+    assert lethal_at(mapping, (2.0, 2.1)) and not lethal_at(mapping, (2.0, 2.25))  # its next second
+    mapping.observe('robot', '/drvs', [], 0.5, velocities=[])  # gone: lingers, its velocity too
+    mapping.update(0.5, me, None)
+    assert [m.velocity for m in mapping.movers] == [(0.0, 0.5)]
+
+
+def test_a_walking_person_holds_the_floor_it_sweeps_but_nobody_gives_way_to_it():
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',)
+    )
+    mapping.observe('human', '/drvs', [box(1.8, 1.3, 2.2, 1.7)], 0.0, velocities=[(-0.4, 0.0)])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert lethal_at(mapping, (1.45, 1.5)) and not lethal_at(mapping, (1.3, 1.5))  # 0.4 m west of it
+    assert mapping.movers == []  # only robots give way to robots
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()

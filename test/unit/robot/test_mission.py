@@ -2,6 +2,7 @@
 coverage timeout and exit codes (no ROS, a manual clock)."""
 
 import doctest
+import math
 
 import pytest
 from shapely.geometry import box
@@ -9,15 +10,21 @@ from test_poll_schedule import drain as drain_requests
 from test_watch_schedule import drain
 
 import drvs.robot.mission
-from drvs.common.status import ACCEPTED
+from drvs.common.status import ACCEPTED, INVALID, UNAVAILABLE, UNSUPPORTED
 from drvs.robot.controller import ARRIVED, ARRIVING, BLOCKED, FAILED, LOCALISING, MOVING
 from drvs.robot.mission import (
+    FAIL,
     MAX_STAMP_AGE,
+    SKIP,
+    USE,
     Coverage,
     MissionEnd,
     callback_stamp,
     fleet_robot,
+    fused_outcome,
+    fused_role,
     mission_end,
+    obstacle_memory_ttl,
     post_round,
     request_schedule,
     schedule_for,
@@ -70,7 +77,9 @@ def test_requests_watch_asks_with_a_watch_schedule_on_the_given_clock():
     clock = ManualClock(50.0)
     schedule = schedule_for(PARAMS, ROLES, clock)
     assert isinstance(schedule, WatchSchedule) and schedule.clock is clock
-    assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2}
+    assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.5}  # human fused
+    per_camera = schedule_for(RobotParams(world='unused.yaml', fused=False), ROLES, clock)
+    assert per_camera.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2}
 
 
 def test_requests_poll_asks_like_the_paper_with_a_request_schedule():
@@ -212,3 +221,21 @@ CRASH = 'background loop control failed: KeyError: 1'
 )
 def test_the_exit_code(once, crash, state, end):
     assert mission_end(once, crash, state, 'no fix' if state == FAILED else '') == end
+
+
+@pytest.mark.parametrize(
+    'status, outcome', [(ACCEPTED, USE), (INVALID, FAIL), (UNSUPPORTED, FAIL), (UNAVAILABLE, SKIP), (9, SKIP)]
+)
+def test_a_fused_callback_is_used_skipped_or_fails_the_mission_by_its_status(status, outcome):
+    assert fused_outcome(status) == outcome
+
+
+@pytest.mark.parametrize(
+    'requests, fused, ttl', [('poll', True, 1.5), ('watch', False, 20.0), ('watch', True, math.inf)]
+)
+def test_obstacle_outlines_stand_as_long_as_their_source_may_stay_silent(requests, fused, ttl):
+    params = RobotParams(
+        world='w.yaml', requests=requests, fused=fused, obstacle_ttl=1.5, watch_duration=20.0
+    )
+    assert obstacle_memory_ttl(params) == ttl
+    assert fused_role(params, 'human') is fused and not fused_role(params, 'self')

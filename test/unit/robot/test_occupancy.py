@@ -101,6 +101,20 @@ def test_a_report_of_nothing_may_let_the_outlines_linger_but_never_beyond_their_
     assert memory.current(31.1) == {('human', '/vs2'): []}
 
 
+def test_a_report_about_a_region_keeps_what_the_source_saw_before_outside_it():
+    memory = ObstacleMemory(ttl=10.0)
+    west, east = box(1, 1, 2, 2), box(5, 1, 6, 2)
+    memory.observe(('obstacle', '/vs1'), [west, east], now=10.0)
+    # Asked about the west only: the east box is still there; a box across the edge keeps its east part.
+    memory.observe(('obstacle', '/vs1'), [], now=11.0, region=(0, 0, 4, 3))
+    ((source, (kept,)),) = memory.current(11.0).items()
+    assert source == ('obstacle', '/vs1') and kept.equals(east)
+    memory.observe(('obstacle', '/vs1'), [box(3, 1, 5, 2)], now=12.0, region=(0, 0, 6, 3))
+    memory.observe(('obstacle', '/vs1'), [box(3, 1, 4, 2)], now=13.0, region=(0, 0, 4, 3))
+    (kept,) = memory.current(13.0).values()
+    assert kept[0] == box(3, 1, 4, 2) and kept[1].equals(box(4, 1, 5, 2))
+
+
 @pytest.mark.parametrize(
     'costs_row, expected',
     [

@@ -55,6 +55,21 @@ def test_the_same_robot_seen_by_two_cameras_is_one_fix_at_its_centre(perception)
     assert fix.stamp == pytest.approx(2.1)
 
 
+def test_fused_the_server_answers_once_with_objects_merged_already_and_their_velocities():
+    fused = Perception(MODELS, '/robot', fused=('self', 'station'))
+    fused.requests.watch_id('self')
+    # One callback from the server: the robot (a track moving east) and something green touching it.
+    found = fused.accept(
+        MODELS['self'], '/robot/self', '/drvs', 2.0, [square(1.0, 1.0), square(1.3, 1.0)], [(0.4, 0.0), None]
+    )
+    assert found.velocities == ((0.4, 0.0), None) and found.vision_system == '/drvs'
+    fix = fused.fix('self')
+    assert fix.position == pytest.approx((1.0, 1.0)) or fix.position == pytest.approx((1.3, 1.0))
+    assert fix.outline.area == pytest.approx(0.09)  # one of the two: not their union
+    with pytest.raises(PerceptionError, match='velocities: expected 1, one per outline, got 2'):
+        fused.accept(MODELS['self'], '/robot/self', '/drvs', 2.1, [square(1.0, 1.0)], [None, None])
+
+
 def test_callbacks_in_any_order_late_or_twice(perception):
     for _ in range(3):
         perception.requests.issue('self')
@@ -290,6 +305,15 @@ def test_once_found_itself_around_its_predicted_position_and_its_station_in_its_
     roi = Region(spanned((2.1, 2.0), (6.0, 3.0), 0.75, FLOOR), spanned((2.1, 2.0), (6.0, 3.0), 0.375, FLOOR))
     assert regions['obstacle'] == regions['human'] == roi
     assert set(regions) == {'self', 'station', 'obstacle', 'human'}
+
+
+def test_the_obstacle_roles_cover_the_corridor_of_the_plan(policy):
+    # The plan goes round below the robot-station box: its corridor is needed, and asked with a margin.
+    corridor = (2.5, 0.5, 5.5, 2.5)
+    regions = policy.regions(11.0, fix_at(2.0, 2.0), fix_at(6.0, 3.0), None, corridor=corridor)
+    assert regions['obstacle'].needed == pytest.approx((1.625, 0.5, 6.375, 3.375))
+    assert regions['obstacle'].box == pytest.approx((1.25, 0.125, 6.75, 3.75))
+    assert regions['human'] == regions['obstacle']
 
 
 def test_a_moving_robots_region_reaches_half_the_margin_ahead(policy):

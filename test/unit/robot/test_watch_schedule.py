@@ -320,7 +320,7 @@ def test_a_region_for_a_role_without_a_period_is_refused(schedule):
 
 
 def test_the_robots_watches():
-    schedule = watch_schedule(RobotParams(world='unused.yaml'), (*ROLES, 'robot'))
+    schedule = watch_schedule(RobotParams(world='unused.yaml', fused=False), (*ROLES, 'robot'))
     assert schedule.periods == {'self': 0.2, 'station': 2.0, 'obstacle': 0.5, 'human': 0.2, 'robot': 0.2}
     assert (schedule.duration, schedule.keep_alive) == (20.0, {'self': 1.25})
     assert schedule.min_interval == 1 / 40

@@ -18,6 +18,7 @@ from drvs.sim.report import (
     RobotRecord,
     RunRecord,
     best_lengths,
+    collision_failure,
     draw,
     figures_table,
     hindsight_shortest_length,
@@ -138,6 +139,7 @@ def test_a_single_robot_summary_keeps_the_paper_keys_and_has_its_row(tmp_path):
         'reached': True,
         'state': 'arrived',
         'reason': '',
+        'collided': '',
         'collisions': 0,
         'elapsed': 12.5,
         'arrival': 12.5,
@@ -207,8 +209,47 @@ def test_a_fleet_summary_has_a_row_per_robot_and_the_totals(tmp_path):
         3,
         1,
     )
-    assert not {'state', 'reason', 'driven_length', 'best_length'} & set(result)
+    assert not {'state', 'driven_length', 'best_length'} & set(result)
+    assert result['reason'] == (
+        "robot collided once (...): a collision fails a blind robot's mission; robot2 did not reach "
+        'its station (failed: no route)'
+    )
     assert set(trace(two_robots(world))) == {'robots', 'humans', 'fields_of_view'}
+
+
+def test_a_collision_fails_the_run_even_when_every_robot_reached_its_station(tmp_path):
+    world = fleet_world(tmp_path)
+    touches = [('robot2', 9.31, 3.84), ('robot2', 11.94, 4.78), ('robot2', 9.33, 3.81)]
+    record = RunRecord(
+        world=world,
+        robots={
+            'robot': RobotRecord('robot', reached=True, state='arrived', collisions=3, touches=touches),
+            'robot2': RobotRecord('robot2', reached=True, state='arrived', collisions=3),
+        },
+    )
+    result = summary(record, best_length={})
+    collided = (
+        'robot collided 3 times (robot2 at (9.3, 3.8), robot2 at (11.9, 4.8), robot2 at (9.3, 3.8)): '
+        "a collision fails a blind robot's mission"
+    )
+    assert (result['reached'], result['success'], result['collisions']) == (True, False, 6)
+    # robot2's touches fell between two ground truths the recorder saw: the count stands alone.
+    lost = "robot2 collided 3 times (...): a collision fails a blind robot's mission"
+    assert result['reason'] == f'{collided}; {lost}'
+    assert collision_failure(result) == f'{collided}; {lost}'
+
+
+def test_a_run_without_collisions_is_no_collision_failure(tmp_path):
+    record = two_robots(fleet_world(tmp_path))
+    record.robots['robot'].collisions = 0
+    result = summary(record, best_length={})
+    assert collision_failure(result) == ''
+    assert (result['success'], result['reason']) == (
+        False,
+        'robot2 did not reach its station (failed: no route)',
+    )
+    record.robots['robot2'] = RobotRecord('robot2', reached=True, state='arrived')
+    assert (summary(record, best_length={})['success'], collision_failure({})) == (True, '')
 
 
 def test_best_lengths_are_each_robots_own_route_for_its_own_clearance(tmp_path):
