@@ -51,6 +51,8 @@ XY = tuple[float, float]
 MOVER_AREA = 0.3
 """Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
 (it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
+OWN_SHARE = 0.1
+"""A moving outline this much inside the robot's own body, trail or station is no mover (it is not swept)."""
 MAX_AGE = 1.0
 """Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
@@ -209,6 +211,7 @@ class MapBuilder:
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
+        own = unary_union(bodies)
         objects: list[Polygon] = []
         for role in self.obstacle_roles:
             found = [
@@ -229,12 +232,17 @@ class MapBuilder:
                 objects.extend(piece for piece, _ in pieces)
                 continue
             # Whatever moves (pieces a robot's size at least) keeps ``clearance`` more, over the
-            # floor it sweeps within ``horizon``.
-            big = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
+            # floor it sweeps within ``horizon``; not what overlaps this robot (its own motion, seen
+            # by a ``motion`` model: moving with it, swept ahead of it, it would block its way).
+            big: list[tuple[Polygon, XY | None]] = []
+            plain: list[tuple[Polygon, XY | None]] = []
+            for piece, v in pieces:
+                mover = piece.area >= self.min_mover and piece.intersection(own).area < OWN_SHARE * piece.area
+                (big if mover else plain).append((piece, v))
             movers = self.trackers[role].update(
                 heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]
             )
-            objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
+            objects.extend(piece for piece, _ in plain)
             objects.extend(self._kept_clear(mover, now) for mover in movers)
             if role == FLEET_ROLE:
                 self.movers = movers

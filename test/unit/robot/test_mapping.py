@@ -158,6 +158,17 @@ def test_a_walking_person_holds_the_floor_it_sweeps_but_nobody_gives_way_to_it()
     assert mapping.movers == []  # only robots give way to robots
 
 
+def test_the_robots_own_motion_is_not_swept_ahead_of_it():
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',)
+    )
+    me = fix_at((1.0, 1.0))
+    # A motion model's blob of this robot driving east, larger than its outline: not dropped, not swept.
+    mapping.observe('human', '/drvs', [box(0.7, 0.7, 1.6, 1.3)], 0.0, velocities=[(0.4, 0.0)])
+    mapping.update(0.0, me, None)
+    assert lethal_at(mapping, (1.55, 1.0)) and not lethal_at(mapping, (1.8, 1.0))
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()
