@@ -199,9 +199,12 @@ class MapBuilder:
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
             self._memory.observe(source, outlines, now, linger=self.linger, region=region)
 
-    def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
+    def update(
+        self, now: float, fix: Fix | None, station: Fix | None, position: XY | None = None
+    ) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its
-        trail, its body) and its ``station``."""
+        trail, its body, and where it believes it is, ``position``: a fix may be late) and its
+        ``station``."""
         with self._memory_lock:
             sources = self._memory.current(now)
             velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
@@ -211,6 +214,8 @@ class MapBuilder:
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
+        if position is not None:
+            bodies.append(Point(position).buffer(self.trail.radius))
         own = unary_union(bodies)
         objects: list[Polygon] = []
         for role in self.obstacle_roles:

@@ -443,7 +443,7 @@ class BlindRobot:
             lost = [role for role in LOCALISATION_ROLES if self.perception.lost(role)]
             uncovered = self.coverage.failure(now)
             known = self.asked.known(now)
-        update = self.map.update(now, fix, station)
+        update = self.map.update(now, fix, station, controller.position)
         if update.changes:
             controller.on_map_changed(update.changes)
         if update.publish:
