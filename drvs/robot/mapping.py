@@ -130,6 +130,7 @@ class MapBuilder:
     :param resolution: the cell size (default :func:`grid_resolution`).
     :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
     :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
+    :param caution: metres beyond ``robot_radius`` where cells cost more (:class:`CostGrid`).
     :param fused: the roles DRVS fuses (one object each already); the outlines of the others
         from every source are merged into objects (:func:`merge_outlines`).
     """
@@ -147,11 +148,13 @@ class MapBuilder:
         clearance: float = 0.0,
         horizon: float = 0.0,
         fused: Collection[str] = (),
+        caution: float = 0.0,
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
         self.linger = linger
-        self.grid = CostGrid(GridSpec(floor_size, resolution or grid_resolution(floor_size)), robot_radius)
+        spec = GridSpec(floor_size, resolution or grid_resolution(floor_size))
+        self.grid = CostGrid(spec, robot_radius, caution)
         self.trail = OwnTrail(robot_radius + BODY_MARGIN)
         self.publishing = MapPublishing(map_period)
         self.obstacles = 0  # obstacle outlines in the current grid

@@ -110,6 +110,7 @@ class BlindRobot:
             clearance=params.robot_clearance,
             horizon=params.traffic_horizon,
             fused=fused,
+            caution=params.obstacle_clearance,
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(
