@@ -19,9 +19,9 @@ from drvs.robot.dstar_lite import FREE
 
 LETHAL = math.inf
 INFLATED = 1e6
-CAUTION = 3.0
-"""The cost of a cell within ``caution`` of the inflated margin: a plan passes there only to save
-three times the way."""
+CAUTION = 1.25
+"""The cost of a cell within ``caution`` of the inflated margin: a quarter more than a free one, so
+a plan beside a shelf moves off it where there is room, and still takes a narrow gap."""
 SUBPIXEL_BITS = 4  # cv2.fillPoly fixed-point precision: 1/16 of a cell
 
 Cell = tuple[int, int]

@@ -67,7 +67,7 @@ class RobotParams(Settings):
     )
     obstacle_clearance: float = param(
         0.1,
-        'cells this much beyond `~robot_radius` from an obstacle cost three times as much: a plan '
+        'cells this much beyond `~robot_radius` from an obstacle cost a quarter more: a plan '
         'keeps off obstacles where there is room (a fix or an outline a few centimetres off does '
         'not graze them)',
         unit='m',
