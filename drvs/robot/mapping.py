@@ -51,6 +51,8 @@ XY = tuple[float, float]
 MOVER_AREA = 0.3
 """Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
 (it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
+OWN_SHARE = 0.1
+"""A moving outline this much inside the robot's own body, trail or station is no mover (it is not swept)."""
 MAX_AGE = 1.0
 """Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
@@ -128,6 +130,7 @@ class MapBuilder:
     :param resolution: the cell size (default :func:`grid_resolution`).
     :param clearance: metres other robots (the fleet role) are kept clear by, beyond ``robot_radius``.
     :param horizon: seconds of the other robots' motion whose floor the map holds (:func:`swept`).
+    :param caution: metres beyond ``robot_radius`` where cells cost more (:class:`CostGrid`).
     :param fused: the roles DRVS fuses (one object each already); the outlines of the others
         from every source are merged into objects (:func:`merge_outlines`).
     """
@@ -145,11 +148,13 @@ class MapBuilder:
         clearance: float = 0.0,
         horizon: float = 0.0,
         fused: Collection[str] = (),
+        caution: float = 0.0,
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
         self.linger = linger
-        self.grid = CostGrid(GridSpec(floor_size, resolution or grid_resolution(floor_size)), robot_radius)
+        spec = GridSpec(floor_size, resolution or grid_resolution(floor_size))
+        self.grid = CostGrid(spec, robot_radius, caution)
         self.trail = OwnTrail(robot_radius + BODY_MARGIN)
         self.publishing = MapPublishing(map_period)
         self.obstacles = 0  # obstacle outlines in the current grid
@@ -197,9 +202,12 @@ class MapBuilder:
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
             self._memory.observe(source, outlines, now, linger=self.linger, region=region)
 
-    def update(self, now: float, fix: Fix | None, station: Fix | None) -> MapUpdate:
+    def update(
+        self, now: float, fix: Fix | None, station: Fix | None, position: XY | None = None
+    ) -> MapUpdate:
         """Rebuild the grid from the outlines standing at ``now``, without the robot (``fix``, its
-        trail, its body) and its ``station``."""
+        trail, its body, and where it believes it is, ``position``: a fix may be late) and its
+        ``station``."""
         with self._memory_lock:
             sources = self._memory.current(now)
             velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
@@ -209,6 +217,9 @@ class MapBuilder:
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
+        if position is not None:
+            bodies.append(Point(position).buffer(self.trail.radius))
+        own = unary_union(bodies)
         objects: list[Polygon] = []
         for role in self.obstacle_roles:
             found = [
@@ -229,12 +240,17 @@ class MapBuilder:
                 objects.extend(piece for piece, _ in pieces)
                 continue
             # Whatever moves (pieces a robot's size at least) keeps ``clearance`` more, over the
-            # floor it sweeps within ``horizon``.
-            big = [(piece, v) for piece, v in pieces if piece.area >= self.min_mover]
+            # floor it sweeps within ``horizon``; not what overlaps this robot (its own motion, seen
+            # by a ``motion`` model: moving with it, swept ahead of it, it would block its way).
+            big: list[tuple[Polygon, XY | None]] = []
+            plain: list[tuple[Polygon, XY | None]] = []
+            for piece, v in pieces:
+                mover = piece.area >= self.min_mover and piece.intersection(own).area < OWN_SHARE * piece.area
+                (big if mover else plain).append((piece, v))
             movers = self.trackers[role].update(
                 heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]
             )
-            objects.extend(piece for piece, _ in pieces if piece.area < self.min_mover)
+            objects.extend(piece for piece, _ in plain)
             objects.extend(self._kept_clear(mover, now) for mover in movers)
             if role == FLEET_ROLE:
                 self.movers = movers

@@ -65,6 +65,14 @@ class RobotParams(Settings):
         check=NON_NEGATIVE,
         default_text="half the diagonal of the robot's footprint",
     )
+    obstacle_clearance: float = param(
+        0.1,
+        'cells this much beyond `~robot_radius` from an obstacle cost a quarter more: a plan '
+        'keeps off obstacles where there is room (a fix or an outline a few centimetres off does '
+        'not graze them)',
+        unit='m',
+        check=NON_NEGATIVE,
+    )
     roi_margin: float = param(
         0.75, 'added around the robot-station box for obstacle requests', unit='m', check=NON_NEGATIVE
     )

@@ -120,6 +120,10 @@ class RegionPolicy:
             roi = spanned(here, station.position, self.roi_margin, size)
             roi = _union(roi, spanned(heading, station.position, self.roi_margin, size))
             needed = spanned(here, station.position, self.roi_margin / 2, size)
+            # Round the robot, one and a half margins at least: a detour round someone near the
+            # station is known floor, not a stop to ask (:mod:`drvs.robot.asked`).
+            roi = _union(roi, spanned(here, here, 1.5 * self.roi_margin, size))
+            needed = _union(needed, spanned(here, here, self.roi_margin, size))
             if corridor is not None and corridor[0] <= corridor[2]:
                 needed = _union(needed, corridor)
                 low, high = corridor[:2], corridor[2:]

@@ -110,6 +110,7 @@ class BlindRobot:
             clearance=params.robot_clearance,
             horizon=params.traffic_horizon,
             fused=fused,
+            caution=params.obstacle_clearance,
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(
@@ -443,7 +444,7 @@ class BlindRobot:
             lost = [role for role in LOCALISATION_ROLES if self.perception.lost(role)]
             uncovered = self.coverage.failure(now)
             known = self.asked.known(now)
-        update = self.map.update(now, fix, station)
+        update = self.map.update(now, fix, station, controller.position)
         if update.changes:
             controller.on_map_changed(update.changes)
         if update.publish:

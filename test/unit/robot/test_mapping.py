@@ -158,6 +158,27 @@ def test_a_walking_person_holds_the_floor_it_sweeps_but_nobody_gives_way_to_it()
     assert mapping.movers == []  # only robots give way to robots
 
 
+def test_the_robots_own_motion_is_not_swept_ahead_of_it():
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',)
+    )
+    me = fix_at((1.0, 1.0))
+    # A motion model's blob of this robot driving east, larger than its outline: not dropped, not swept.
+    mapping.observe('human', '/drvs', [box(0.7, 0.7, 1.6, 1.3)], 0.0, velocities=[(0.4, 0.0)])
+    mapping.update(0.0, me, None)
+    assert lethal_at(mapping, (1.55, 1.0)) and not lethal_at(mapping, (1.8, 1.0))
+
+
+def test_where_the_robot_believes_it_is_is_no_obstacle_when_its_fix_is_late():
+    mapping = builder()
+    late = fix_at((1.0, 1.0))
+    mapping.observe('human', '/vs1', [box(1.85, 0.85, 2.15, 1.15)], 0.0)  # motion finds it moving, 1 m on
+    mapping.update(0.0, late, None)
+    assert mapping.obstacles == 1
+    mapping.update(0.1, late, None, position=(2.0, 1.0))
+    assert mapping.obstacles == 0
+
+
 def test_the_robots_ghost_where_it_stood_is_not_an_obstacle_for_a_while():
     clock = ManualClock(0.0)
     mapping = builder()

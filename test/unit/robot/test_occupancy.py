@@ -9,6 +9,7 @@ from shapely.geometry import Point, box
 from drvs.robot import occupancy
 from drvs.robot.dstar_lite import FREE, DStarLite
 from drvs.robot.occupancy import (
+    CAUTION,
     INFLATED,
     LETHAL,
     CostGrid,
@@ -46,6 +47,19 @@ def test_outline_cells_are_lethal_and_the_margin_is_inflated_by_the_radius():
     occupancy = grid.occupancy()
     assert occupancy[centre] == 100
     assert set(np.unique(occupancy)) == {0, 99, 100}
+
+
+def test_cells_a_little_beyond_the_margin_cost_more_and_plans_may_still_cross_them():
+    grid = CostGrid(SPEC, robot_radius=0.2, caution=0.1)
+    grid.apply([box(0.9, 0.4, 1.1, 0.6)])
+    assert grid.costs[SPEC.cell_of((1.0 + 0.1 + 0.27, 0.5))] == CAUTION  # 0.27 m from the edge
+    assert grid.costs[SPEC.cell_of((1.0 + 0.1 + 0.37, 0.5))] == FREE
+    assert grid.occupancy()[SPEC.cell_of((1.0 + 0.1 + 0.27, 0.5))] == 0
+    row, col = SPEC.cell_of((1.0, 0.5))[0], 35
+    through = [(row, col), SPEC.cell_of((1.375, 0.5)), (row, col)]
+    assert grid.costs[through[1]] == CAUTION and grid.costs[(row, col)] == FREE
+    assert not crosses_margin(through, grid.costs)  # a plan may pass there
+    assert crosses_margin([(row, col), SPEC.cell_of((1.25, 0.5)), (row, col)], grid.costs)
 
 
 def test_a_sliver_thinner_than_a_cell_still_blocks():

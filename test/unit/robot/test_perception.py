@@ -302,8 +302,11 @@ def test_once_found_itself_around_its_predicted_position_and_its_station_in_its_
     assert regions['self'].needed == pytest.approx((1.65, 1.55, 2.55, 2.45))  # + a quarter margin
     assert regions['station'].box == pytest.approx((4.8, 1.8, 7.0, 4.2))  # clipped to the floor
     assert regions['station'].needed == pytest.approx((5.55, 2.55, 6.45, 3.45))
-    roi = Region(spanned((2.1, 2.0), (6.0, 3.0), 0.75, FLOOR), spanned((2.1, 2.0), (6.0, 3.0), 0.375, FLOOR))
-    assert regions['obstacle'] == regions['human'] == roi
+    # The robot-station box plus the margin, and 1.5 margins round the robot (one needed).
+    roi = Region((0.975, 0.875, 6.75, 3.75), (1.35, 1.25, 6.375, 3.375))
+    assert regions['obstacle'].box == pytest.approx(roi.box)
+    assert regions['obstacle'].needed == pytest.approx(roi.needed)
+    assert regions['obstacle'] == regions['human']
     assert set(regions) == {'self', 'station', 'obstacle', 'human'}
 
 
@@ -311,8 +314,8 @@ def test_the_obstacle_roles_cover_the_corridor_of_the_plan(policy):
     # The plan goes round below the robot-station box: its corridor is needed, and asked with a margin.
     corridor = (2.5, 0.5, 5.5, 2.5)
     regions = policy.regions(11.0, fix_at(2.0, 2.0), fix_at(6.0, 3.0), None, corridor=corridor)
-    assert regions['obstacle'].needed == pytest.approx((1.625, 0.5, 6.375, 3.375))
-    assert regions['obstacle'].box == pytest.approx((1.25, 0.125, 6.75, 3.75))
+    assert regions['obstacle'].needed == pytest.approx((1.25, 0.5, 6.375, 3.375))
+    assert regions['obstacle'].box == pytest.approx((0.875, 0.125, 6.75, 3.75))
     assert regions['human'] == regions['obstacle']
 
 
@@ -331,4 +334,4 @@ def test_a_robot_that_loses_itself_looks_over_the_whole_floor_again(policy, now,
     regions = policy.regions(now, fix_at(2.0, 2.0), fix_at(6.0, 3.0), None, lost=lost)
     assert (regions['self'].box != whole_floor(FLOOR)) == tracked
     assert regions['station'].box != whole_floor(FLOOR)
-    assert regions['obstacle'].box == spanned((2.0, 2.0), (6.0, 3.0), 0.75, FLOOR)  # from the last fix
+    assert regions['obstacle'].box == pytest.approx((0.875, 0.875, 6.75, 3.75))  # from the last fix
