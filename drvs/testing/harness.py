@@ -75,6 +75,31 @@ def wait_for(
         time.sleep(interval)
 
 
+def freeze(pid: int, timeout: float = 10.0) -> None:
+    """SIGSTOP ``pid`` and wait until every thread of it has stopped (``kill`` returns before they
+    have: on a busy machine a thread may still answer one more request)."""
+    os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:
+        try:
+            states = [
+                _thread_state(f'/proc/{pid}/task/{task}/stat') for task in os.listdir(f'/proc/{pid}/task')
+            ]
+        except FileNotFoundError:
+            return True  # gone: it answers nothing either
+        return all(state in ('T', 't', None) for state in states)
+
+    wait_for(stopped, timeout, f'process {pid} to stop', interval=0.005)
+
+
+def _thread_state(path: str) -> str | None:
+    try:
+        with open(path) as stat:
+            return stat.read().rsplit(')', 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return None
+
+
 def processes_of_session(session: str) -> list[int]:
     """PIDs of live processes whose environment carries ``DRVS_TEST_SESSION=session``."""
     marker = f'{SESSION_VARIABLE}={session}'.encode()

@@ -9,7 +9,7 @@ import pytest
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient, probe_service
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, DetectObjectBoundaryRequest
-from drvs.testing import wait_for
+from drvs.testing import freeze, wait_for
 
 pytestmark = pytest.mark.shared_master  # see test/conftest.py
 
@@ -215,7 +215,7 @@ def test_start_times_out_like_call_and_the_next_call_reconnects(ros, replies):
     outcomes = Outcomes()
     try:
         client.call(request('opens'))
-        os.kill(node.pid, signal.SIGSTOP)  # the service hangs
+        freeze(node.pid)  # the service hangs
         try:
             assert client.start(request('hung'), replies, outcomes.done('hung'))
             wait_for(lambda: outcomes.ended, 10, 'the timeout')
@@ -242,7 +242,7 @@ def test_stopping_the_loop_ends_the_calls_in_flight(ros):
     outcomes = Outcomes()
     try:
         client.call(request('opens'))
-        os.kill(node.pid, signal.SIGSTOP)
+        freeze(node.pid)
         try:
             assert client.start(request('hung'), loop, outcomes.done('hung'))
             loop.stop()
