@@ -67,15 +67,18 @@ class Track:
         """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
         return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
 
-    def outline(self, at: float, age: float) -> tuple[Point, ...]:
-        """The union of its fresh outlines, each moved along the velocity to ``at`` (counter-clockwise)."""
+    def outline(self, at: float, age: float, extended: float = math.inf) -> tuple[Point, ...]:
+        """Its outline moved along the velocity to ``at`` (counter-clockwise): the union of its fresh
+        outlines when one of them is ``extended`` (half-diagonal, metres: a shelf seen in parts),
+        else the newest camera's alone (a person, a robot, a tag: every camera sees all of it, and a
+        union of views taken at different times is bigger than the object and loses a tag's corners)."""
         vx, vy = self.velocity()
         if self.fused is None or self.fused[1] != age:  # computed at last_seen once, then moved as a whole
             stamp = self.last_seen
-            moves = [
-                (seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp)))
-                for seen in self.fresh(age)
-            ]
+            fresh = self.fresh(age)
+            if all(seen.shape.radius < extended for seen in fresh):
+                fresh = [max(fresh, key=lambda seen: seen.stamp)]
+            moves = [(seen.shape, (vx * (stamp - seen.stamp), vy * (stamp - seen.stamp))) for seen in fresh]
             self.fused = (stamp, age, np.array(union_outline(moves)))
         stamp, _, points = self.fused
         return tuple((x, y) for x, y in (points + (vx * (at - stamp), vy * (at - stamp))).tolist())

@@ -378,7 +378,7 @@ class Tracker:
             vx, vy = track.velocity()
             # A stationary object's outlines stay valid however old: a shelf wider than one camera's
             # view is the union of every camera's part, whenever each was seen (within the coast time).
-            outline = track.outline(at, s.coast if track.stationary else s.outline_age)
+            outline = track.outline(at, s.coast if track.stationary else s.outline_age, EXTENDED)
             if region is not None and not _overlaps(outline, region):
                 continue
             freshness = min(1.0, 1.0 - age / s.coast)

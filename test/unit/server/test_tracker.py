@@ -416,3 +416,16 @@ def test_a_stationary_object_wider_than_one_view_keeps_every_cameras_part():
     assert view.stationary
     xs = [x for x, _ in view.outline]
     assert (min(xs), max(xs)) == (pytest.approx(0.0, abs=0.01), pytest.approx(2.0, abs=0.01))
+
+
+def test_a_small_objects_outline_is_its_newest_view_moved_not_a_union_of_views():
+    # A tag seen by two cameras 50 ms apart while it moves at 0.5 m/s: the union of both views
+    # would be 2.5 cm longer and lose the tag's four corners (its heading).
+    tracker = Tracker()
+    for t in ticks(2.0):
+        tracker.frame('a', t, [seen(0.5 * t, 1.0, size=0.2, label='7')])
+        tracker.frame('b', t + 0.05, [seen(0.5 * (t + 0.05) + 0.02, 1.0, size=0.2, label='7')])
+    (view,) = tracker.tracks(2.0)
+    assert len(view.outline) == 4
+    newest = square(0.5 * 2.0 + 0.02, 1.0, size=0.2)  # b's view at 1.95 s, moved 50 ms along
+    assert sorted(view.outline) == [pytest.approx(p, abs=0.01) for p in sorted(newest)]
