@@ -17,7 +17,7 @@ import numpy as np
 
 from drvs.robot.asked import Box, inside, intersection
 from drvs.robot.dstar_lite import FREE, DStarLite
-from drvs.robot.occupancy import CostGrid, crosses_margin
+from drvs.robot.occupancy import INFLATED, CostGrid, crosses_margin
 from drvs.robot.perception import Fix
 from drvs.robot.plan import corridor, densify, nearest_on_path, point_along, shortcut
 from drvs.robot.robot_status import RobotStatus
@@ -50,6 +50,7 @@ class ControllerSettings:
     corridor_margin: float = 0.375  # m around a plan whose obstacles must be known before it is followed
     approach_gain: float = 1.5  # 1/s: speed = min(speed, gain * distance to goal) near the goal
     min_speed: float = 0.05  # m/s, so the approach never stalls
+    ahead: float = 0.6  # m of the old plan past the lookahead that must stay clear to follow it while waiting
 
 
 class DeadReckoning:
@@ -226,7 +227,14 @@ class Controller:
                     f'no answers about the floor of its plan (obstacles in {_box_text(self.corridor)}) '
                     f'for {s.unreachable_timeout:.1f} s'
                 )
-            return (0.0, 0.0)
+                return (0.0, 0.0)
+            if self._in_the_way():  # standing where something moving will pass: out of its way first
+                log.info('in the way of something moving: following its new plan before the answers')
+                self._take_pending()
+            elif self.path and self._ahead_is_clear(known):
+                return self._follow(to_goal)  # the old plan, over known floor, while the answers come
+            else:
+                return (0.0, 0.0)
         self._waiting_since = None
         if not self.path:
             if self._blocked_since is None:
@@ -278,6 +286,12 @@ class Controller:
             self.pending, self._cells = self._smoothed(cells), len(cells)
         if self.pending is None or not (known is None or inside(self._corridor(self.pending), known)):
             return
+        self._take_pending()
+
+    def _take_pending(self) -> None:
+        """Follow the pending plan from now on; a changed route counts (and is logged) as a re-plan."""
+        assert self.pending is not None and self._planner is not None  # by _plan
+        spec = self.grid.spec
         previous = self.path[self._progress :]
         self.path, self.pending = self.pending, None
         self._progress = 0
@@ -321,6 +335,26 @@ class Controller:
         if len(cells) == 1:  # the robot and its goal in one cell
             free = free * 2
         return densify(shortcut(points, free, costs, spec.resolution), spec.resolution)
+
+    def _in_the_way(self) -> bool:
+        """Whether the robot stands in a margin the map holds (another robot's or a person's
+        floor ahead of them, :func:`drvs.robot.traffic.swept`): waiting there, it would be run into."""
+        assert self.position is not None  # by _decide
+        return bool(self.grid.costs[self.grid.spec.cell_of(self.position)] >= INFLATED)
+
+    def _ahead_is_clear(self, known: Box | None) -> bool:
+        """Whether the plan the robot follows stays over free, known floor for its stopping
+        distance (``ahead``) past the point of it nearest the robot."""
+        assert self.position is not None  # by _decide
+        s, spec = self.settings, self.grid.spec
+        segment, fraction = nearest_on_path(self.path, self.position, self._progress)
+        reach = s.lookahead + s.ahead
+        points = [
+            point_along(self.path, segment, fraction, d) for d in np.arange(0.0, reach, spec.resolution / 2)
+        ]
+        if known is not None and not inside(corridor(points, s.corridor_margin), known):
+            return False
+        return all(self.grid.costs[spec.cell_of(p)] < INFLATED for p in points)
 
     def _distance_to_path(self) -> float:
         assert self.position is not None  # a path starts where the robot was located

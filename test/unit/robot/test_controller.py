@@ -155,6 +155,41 @@ def test_a_plan_over_floor_not_asked_about_waits_for_the_answers():
     assert clearance(sim) > 0.15
 
 
+def test_while_the_answers_come_the_robot_follows_its_old_plan_as_far_as_it_is_clear():
+    # A box far ahead makes the new plan leave the known band: the robot does not stop where it
+    # is (someone might walk into it) but follows its old plan until its stretch ahead is no
+    # longer clear, and never enters the box's margin.
+    band = (0.0, 0.5, 3.0, 1.5)
+    sim = Sim((0.4, 1.0))
+    sim.run(10, until=lambda s: s.true[0] > 0.8, known=band)
+    sim.set_obstacles([box(2.1, 0.45, 2.3, 1.55)])
+    sim.run(0.2, known=band)
+    assert sim.controller.pending is not None and sim.controller.replans == 0
+    start = sim.true[0]
+    sim.run(3.0, known=band)
+    assert sim.true[0] > start + 0.2  # it kept going
+    assert sim.true[0] < 2.1 - RADIUS  # and stopped short of the box's margin
+    moved = sim.true
+    sim.run(1.0, known=band)
+    assert sim.true == moved
+    sim.run(20, known=(0.0, 0.0, 3.0, 2.0))
+    assert sim.controller.state == ARRIVED and clearance(sim) > 0.15
+
+
+def test_a_robot_waiting_in_the_way_of_something_moving_follows_its_new_plan_at_once():
+    # The map holds the floor ahead of a person (swept) where the robot stands: waiting there
+    # for the answers about its new plan's floor, it would be walked into.
+    band = (0.0, 0.8, 3.0, 1.2)  # narrower than any new plan's corridor
+    sim = Sim((0.4, 1.0))
+    sim.run(10, until=lambda s: s.true[0] > 1.0)
+    here = sim.true
+    sim.set_obstacles([box(here[0] - 0.1, here[1] + 0.05, here[0] + 0.3, here[1] + 0.5)])
+    sim.run(0.1, known=band)
+    assert sim.controller.pending is None and sim.controller.replans == 1
+    sim.run(1.0, known=band)
+    assert Point(sim.true).distance(Point(here)) > 0.1  # it moved out of the way
+
+
 def test_no_answers_about_the_floor_of_a_plan_fail_after_the_unreachable_timeout():
     sim = Sim((0.4, 1.0), settings=ControllerSettings(speed=0.5, unreachable_timeout=2.0))
     sim.run(5, known=(0.0, 0.0, 1.0, 1.0))
