@@ -21,7 +21,7 @@ from drvs.robot.occupancy import INFLATED, CostGrid, crosses_margin
 from drvs.robot.perception import Fix
 from drvs.robot.plan import corridor, densify, nearest_on_path, point_along, shortcut
 from drvs.robot.robot_status import RobotStatus
-from drvs.robot.traffic import Mover, Yielding
+from drvs.robot.traffic import Mover, Yielding, clear_of_people
 
 log = logging.getLogger('rosout.' + __name__)
 
@@ -51,6 +51,10 @@ class ControllerSettings:
     approach_gain: float = 1.5  # 1/s: speed = min(speed, gain * distance to goal) near the goal
     min_speed: float = 0.05  # m/s, so the approach never stalls
     ahead: float = 0.6  # m of the old plan past the lookahead that must stay clear to follow it while waiting
+    radius: float = 0.2  # m: the robot's, for keeping clear of people
+    people_horizon: float = (
+        2.0  # s ahead people's motion is predicted (:func:`drvs.robot.traffic.clear_of_people`)
+    )
 
 
 class DeadReckoning:
@@ -114,6 +118,8 @@ class Controller:
         self.settings = settings
         self.yielding = yielding  # gives way to other robots (None: never)
         self.yielding_to: Mover | None = None  # the robot it gives way to now
+        self.keeping_clear_of: Mover | None = None  # the person it left its plan for now
+        self.keeps_clear = 0  # times it left its plan for someone moving
         self.state = LOCALISING
         self.reason = ''
         self.replans = 0
@@ -168,6 +174,7 @@ class Controller:
         station: Fix | None,
         known: Box | None = None,
         movers: Sequence[Mover] = (),
+        people: Sequence[Mover] = (),
     ) -> tuple[float, float]:
         """Decide the velocity (vx, vy) in ``map`` for now; records it for dead reckoning.
 
@@ -176,6 +183,8 @@ class Controller:
             corridor is inside it (None: anywhere).
         :param movers: the other robots, with their velocities: it stands still while it gives
             way to one (:class:`drvs.robot.traffic.Yielding`).
+        :param people: whatever else moves (people), with their velocities: they give way to
+            nobody, so the robot keeps clear of them (:func:`drvs.robot.traffic.clear_of_people`).
         """
         vx, vy = self._decide(now, fix, station, known)
         if self.yielding is not None and self.state == MOVING and self.position is not None:
@@ -185,6 +194,15 @@ class Controller:
             self.yielding_to = other
             if other is not None:
                 vx, vy = 0.0, 0.0
+        if people and self.state == MOVING and self.position is not None:
+            s = self.settings
+            (vx, vy), person = clear_of_people(
+                self.position, (vx, vy), [p.at(now) for p in people], s.radius, s.people_horizon, self._free
+            )
+            if person is not None and self.keeping_clear_of is None:
+                log.info('keeping clear of someone moving at (%.2f, %.2f)', *person.position)
+                self.keeps_clear += 1
+            self.keeping_clear_of = person
         self.dead_reckoning.command(now, vx, vy)
         return vx, vy
 
@@ -335,6 +353,12 @@ class Controller:
         if len(cells) == 1:  # the robot and its goal in one cell
             free = free * 2
         return densify(shortcut(points, free, costs, spec.resolution), spec.resolution)
+
+    def _free(self, point: Point) -> bool:
+        """Whether ``point`` is on the floor and outside every obstacle's margin."""
+        width, height = self.grid.spec.size
+        inside_floor = 0.0 <= point[0] <= width and 0.0 <= point[1] <= height
+        return inside_floor and bool(self.grid.costs[self.grid.spec.cell_of(point)] < INFLATED)
 
     def _in_the_way(self) -> bool:
         """Whether the robot stands in a margin the map holds (another robot's or a person's

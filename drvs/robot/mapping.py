@@ -161,6 +161,7 @@ class MapBuilder:
         self.clearance, self.horizon = clearance, horizon
         self.trackers = {role: MoverTracker() for role in self.obstacle_roles if role not in STATIC_ROLES}
         self.movers: list[Mover] = []  # the other robots at the last update, with their velocities
+        self.people: list[Mover] = []  # whatever else moves (people), likewise
         self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
         self.fused = frozenset(fused)
         self._memory_lock = (
@@ -221,6 +222,7 @@ class MapBuilder:
             bodies.append(Point(position).buffer(self.trail.radius))
         own = unary_union(bodies)
         objects: list[Polygon] = []
+        moving_people: dict[str, list[Mover]] = {}
         for role in self.obstacle_roles:
             found = [
                 (o, velocities[source].get(id(o)))
@@ -254,6 +256,9 @@ class MapBuilder:
             objects.extend(self._kept_clear(mover, now) for mover in movers)
             if role == FLEET_ROLE:
                 self.movers = movers
+            else:
+                moving_people[role] = movers
+        self.people = [mover for movers in moving_people.values() for mover in movers]
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)
         return MapUpdate(changes, self.publishing.due(now, bool(changes)))

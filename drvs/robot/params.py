@@ -133,6 +133,14 @@ class RobotParams(Settings):
         unit='s',
         check=NON_NEGATIVE,
     )
+    people_horizon: float = param(
+        2.0,
+        "how far ahead people's motion is predicted: a velocity that would bring the robot closer to "
+        'someone moving than `~robot_radius`, their half size and 15 cm within it is not taken (the '
+        'robot slows, stops, steps aside or back instead)',
+        unit='s',
+        check=POSITIVE,
+    )
     yield_patience: float = param(
         1.0,
         'the longest the robot gives way to one robot, plus half as much again for each robot of '

@@ -11,19 +11,31 @@ docs/nodes/blind_robot.md ("Other robots").
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from shapely.affinity import translate
 from shapely.geometry import Polygon
 
-__all__ = ['STILL', 'YIELD_MARGIN', 'Mover', 'MoverTracker', 'Yielding', 'closest_approach', 'swept']
+__all__ = [
+    'PERSON_MARGIN',
+    'STILL',
+    'YIELD_MARGIN',
+    'Mover',
+    'MoverTracker',
+    'Yielding',
+    'clear_of_people',
+    'closest_approach',
+    'swept',
+]
 
 Point = tuple[float, float]
 STILL = 0.15
 """m/s: a robot slower than this stands still (the map holds it; nobody starts giving way to it)."""
 YIELD_MARGIN = 0.2
 """Metres beyond the sum of two robots' radii under which their predicted closest approach is too close."""
+PERSON_MARGIN = 0.15
+"""Metres beyond the robot's radius and a person's under which the robot comes too close to them."""
 
 
 @dataclass(frozen=True)
@@ -51,6 +63,12 @@ class Mover:
     @property
     def speed(self) -> float:
         return math.hypot(*self.velocity)
+
+    @property
+    def radius(self) -> float:
+        """Metres from its centroid to its farthest corner."""
+        centre = self.outline.centroid
+        return max(math.dist((centre.x, centre.y), corner) for corner in self.outline.exterior.coords)
 
 
 class MoverTracker:
@@ -265,3 +283,56 @@ class Yielding:
         near = [(math.dist(at, m.position), i) for i, m in enumerate(movers)]
         near = [(d, i) for d, i in near if d <= self.gate]
         return movers[min(near)[1]] if near else None
+
+
+def clear_of_people(
+    position: Point,
+    planned: Point,
+    people: Sequence[Mover],
+    radius: float,
+    horizon: float,
+    free: Callable[[Point], bool] = lambda point: True,
+) -> tuple[Point, Mover | None]:
+    """The velocity that keeps a robot of ``radius`` at ``position`` clear of moving ``people``
+    (who give way to nobody), and the person it changed the plan for (None: ``planned`` is clear).
+
+    A velocity is clear when, kept for ``horizon`` seconds, the predicted closest approach to each
+    person moving at their velocity stays over the robot's radius, the person's and
+    :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still, either
+    side across it, back along it — each only where ``free`` holds the point it reaches in a
+    second; with none clear, the one that comes least close. So the robot waits before a
+    person's way, and leaves it (or goes on across it) when waiting there would be run into.
+
+    >>> from shapely.geometry import box
+    >>> person = Mover(box(1.8, -0.2, 2.2, 0.2), (-0.5, 0.0))
+    >>> clear_of_people((0.0, 0.0), (0.5, 0.0), [person], 0.2, 2.0)[0]  # head on: stand
+    (0.0, 0.0)
+    >>> clear_of_people((0.0, 0.0), (0.0, 0.5), [person], 0.2, 2.0)[0]  # moving out of the way
+    (0.0, 0.5)
+    """
+    moving = [p for p in people if p.speed >= STILL]
+    if not moving:
+        return planned, None
+    vx, vy = planned
+    candidates = [planned, (vx / 2, vy / 2), (0.0, 0.0), (-vy, vx), (vy, -vx), (-vx, -vy)]
+    candidates = [
+        c
+        for c in candidates
+        if c == planned or c == (0.0, 0.0) or free((position[0] + c[0], position[1] + c[1]))
+    ]
+    best: tuple[float, Point, Mover | None] | None = None
+    for velocity in candidates:
+        closest, nearest = math.inf, None
+        for person in moving:
+            offset = (person.position[0] - position[0], person.position[1] - position[1])
+            relative = (person.velocity[0] - velocity[0], person.velocity[1] - velocity[1])
+            _, d = closest_approach(offset, relative, horizon)
+            slack = d - (radius + person.radius + PERSON_MARGIN)
+            if slack < closest:
+                closest, nearest = slack, person
+        if closest >= 0:
+            return velocity, (None if velocity == planned else nearest)
+        if best is None or closest > best[0]:
+            best = (closest, velocity, nearest)
+    assert best is not None  # planned is always a candidate
+    return best[1], best[2]

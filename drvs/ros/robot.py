@@ -127,6 +127,8 @@ class BlindRobot:
             replan_distance=params.replan_distance,
             route_tolerance=params.route_tolerance,
             corridor_margin=params.roi_margin / 2,
+            radius=self.robot_radius,
+            people_horizon=params.people_horizon,
         )
         self.schedule = schedule_for(params, tuple(me.colour_models), clock=rospy.get_time)
         self.controller: Controller | None = None  # from start()
@@ -452,7 +454,7 @@ class BlindRobot:
             self.map_pub.publish(occupancy_to_msg(grid.occupancy(), grid.spec.resolution, now))
         if uncovered is not None:
             controller.fail(uncovered)
-        vx, vy = controller.step(now, fix, station, known, self.map.movers)
+        vx, vy = controller.step(now, fix, station, known, self.map.movers, self.map.people)
         self.cmd_vel.publish(Twist(linear=Vector3(vx, vy, 0.0)))
         self._post_round(now, fix, station, (vx, vy), lost)
         self._publish(now)

@@ -1,5 +1,6 @@
 """Controller logic in a small kinematic simulation with late fixes (no ROS)."""
 
+import math
 import random
 
 import pytest
@@ -56,11 +57,14 @@ class Sim:
         self.fix = None
         self.seq = 0
         self.trace = [start]
+        self.closest = math.inf  # metres between the true robot centre and the nearest person
         self.set_obstacles(obstacles)
 
     def set_obstacles(self, obstacles):
         self.obstacles = list(obstacles)
         self.controller.on_map_changed(self.grid.apply(self.obstacles))
+
+    people = None  # now -> the people (Movers) at now, seen now
 
     def run(self, seconds, until=None, fixes=True, known=None):
         for _ in range(int(round(seconds / self.period))):
@@ -71,7 +75,11 @@ class Sim:
                     self.seq += 1
                     seen = (x + self.rng.gauss(0.0, self.noise), y + self.rng.gauss(0.0, self.noise))
                     self.fix = fix_at(seen, stamp, self.seq)
-            vx, vy = self.controller.step(self.now, self.fix, fix_at(self.station, 0.0, 1), known)
+            people = self.people(self.now) if self.people else ()
+            vx, vy = self.controller.step(
+                self.now, self.fix, fix_at(self.station, 0.0, 1), known, people=people
+            )
+            self.closest = min([self.closest, *(p.outline.distance(Point(self.true)) for p in people)])
             self.true = (self.true[0] + vx * self.period, self.true[1] + vy * self.period)
             self.trace.append(self.true)
             self.now += self.period
@@ -188,6 +196,24 @@ def test_a_robot_waiting_in_the_way_of_something_moving_follows_its_new_plan_at_
     assert sim.controller.pending is None and sim.controller.replans == 1
     sim.run(1.0, known=band)
     assert Point(sim.true).distance(Point(here)) > 0.1  # it moved out of the way
+
+
+@pytest.mark.parametrize('crossing_at', [1.0, 1.6, 2.2])
+def test_a_person_walking_across_the_plan_is_never_touched(crossing_at):
+    # People give way to nobody: whenever a person's way crosses the robot's, the robot waits
+    # before it, or steps out of it, and still arrives.
+    sim = Sim((0.4, 1.0), settings=ControllerSettings(speed=0.5, radius=RADIUS))
+    walk = 0.4  # m/s southwards across y = 1, over x = 1.5, reaching the plan at ``crossing_at`` s
+
+    def people(now):
+        y = 1.0 + walk * (crossing_at - now)
+        return [Mover(box(1.3, y - 0.2, 1.7, y + 0.2), (0.0, -walk), now)]
+
+    sim.people = people
+    sim.run(20)
+    assert sim.controller.state == ARRIVED
+    assert sim.closest > RADIUS  # the body never touched the person
+    assert sim.controller.keeps_clear >= (1 if crossing_at > 1.0 else 0)
 
 
 def test_no_answers_about_the_floor_of_a_plan_fail_after_the_unreachable_timeout():
