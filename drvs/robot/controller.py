@@ -120,6 +120,7 @@ class Controller:
         self.yielding_to: Mover | None = None  # the robot it gives way to now
         self.keeping_clear_of: Mover | None = None  # the person it left its plan for now
         self.keeps_clear = 0  # times it left its plan for someone moving
+        self._heading: Point = (0.0, 0.0)  # the last velocity it drove its plan at
         self.state = LOCALISING
         self.reason = ''
         self.replans = 0
@@ -194,15 +195,26 @@ class Controller:
             self.yielding_to = other
             if other is not None:
                 vx, vy = 0.0, 0.0
-        if people and self.state == MOVING and self.position is not None:
+        if people and self.state in (MOVING, BLOCKED) and self.position is not None:
             s = self.settings
+            hx, hy = self._heading
+            norm = math.hypot(hx, hy)
+            back = (-hx / norm * s.speed, -hy / norm * s.speed) if norm > 0 else (0.0, 0.0)
             (vx, vy), person = clear_of_people(
-                self.position, (vx, vy), [p.at(now) for p in people], s.radius, s.people_horizon, self._free
+                self.position,
+                (vx, vy),
+                [p.at(now) for p in people],
+                s.radius,
+                s.people_horizon,
+                back,
+                self._free,
             )
             if person is not None and self.keeping_clear_of is None:
                 log.info('keeping clear of someone moving at (%.2f, %.2f)', *person.position)
                 self.keeps_clear += 1
             self.keeping_clear_of = person
+        if math.hypot(vx, vy) > 0 and self.keeping_clear_of is None:
+            self._heading = (vx, vy)
         self.dead_reckoning.command(now, vx, vy)
         return vx, vy
 

@@ -291,6 +291,7 @@ def clear_of_people(
     people: Sequence[Mover],
     radius: float,
     horizon: float,
+    back: Point = (0.0, 0.0),
     free: Callable[[Point], bool] = lambda point: True,
 ) -> tuple[Point, Mover | None]:
     """The velocity that keeps a robot of ``radius`` at ``position`` clear of moving ``people``
@@ -298,10 +299,11 @@ def clear_of_people(
 
     A velocity is clear when, kept for ``horizon`` seconds, the predicted closest approach to each
     person moving at their velocity stays over the robot's radius, the person's and
-    :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still, either
-    side across it, back along it — each only where ``free`` holds the point it reaches in a
-    second; with none clear, the one that comes least close. So the robot waits before a
-    person's way, and leaves it (or goes on across it) when waiting there would be run into.
+    :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still, and
+    ``back`` (the way the robot came, reversed: floor it has just been on) where ``free`` holds
+    the point it reaches in a second; with none clear, the one that comes least close. So the
+    robot waits before a person's way, and backs out of it rather than wait in it; it never
+    steps onto floor off its way (which its cameras might not see).
 
     >>> from shapely.geometry import box
     >>> person = Mover(box(1.8, -0.2, 2.2, 0.2), (-0.5, 0.0))
@@ -309,17 +311,15 @@ def clear_of_people(
     (0.0, 0.0)
     >>> clear_of_people((0.0, 0.0), (0.0, 0.5), [person], 0.2, 2.0)[0]  # moving out of the way
     (0.0, 0.5)
+    >>> clear_of_people((1.0, 0.0), (0.0, 0.0), [person], 0.2, 2.0, back=(0.0, -0.5))[0]  # in its way
+    (0.0, -0.5)
     """
     moving = [p for p in people if p.speed >= STILL]
     if not moving:
         return planned, None
-    vx, vy = planned
-    candidates = [planned, (vx / 2, vy / 2), (0.0, 0.0), (-vy, vx), (vy, -vx), (-vx, -vy)]
-    candidates = [
-        c
-        for c in candidates
-        if c == planned or c == (0.0, 0.0) or free((position[0] + c[0], position[1] + c[1]))
-    ]
+    candidates = [planned, (planned[0] / 2, planned[1] / 2), (0.0, 0.0)]
+    if math.hypot(*back) > 0 and free((position[0] + back[0], position[1] + back[1])):
+        candidates.append(back)
     best: tuple[float, Point, Mover | None] | None = None
     for velocity in candidates:
         closest, nearest = math.inf, None
