@@ -37,9 +37,9 @@ class RobotParams(Settings):
     )
     fused: bool = param(
         True,
-        'ask DRVS for fused answers about itself, the station, people and other robots: one callback '
-        'per request or watch period from the fusion stage, every object once, tracked, with its '
-        'velocity (static obstacles: per camera); false: one callback per vision system (the paper)',
+        'ask DRVS for fused answers about the station, people and other robots: one callback per '
+        'request or watch period from the fusion stage, every object once, tracked, with its velocity '
+        '(itself and static obstacles: per camera); false: one callback per vision system (the paper)',
     )
     fused_period: float = param(
         0.5,

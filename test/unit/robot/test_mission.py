@@ -238,5 +238,4 @@ def test_obstacle_outlines_stand_as_long_as_their_source_may_stay_silent(request
         world='w.yaml', requests=requests, fused=fused, obstacle_ttl=1.5, watch_duration=20.0
     )
     assert obstacle_memory_ttl(params) == ttl
-    assert fused_role(params, 'human') is fused is fused_role(params, 'self')
-    assert not fused_role(params, 'obstacle')
+    assert fused_role(params, 'human') is fused and not fused_role(params, 'self')
