@@ -117,9 +117,11 @@ def fused_role(params: RobotParams, role: str) -> bool:
 
     - The robot itself: each camera's outline is measured at its frame's stamp, and the robot
       knows its own motion since; a fused track is a model's prediction, which stands still
-      for a second after the robot starts again (a stationary track), and unions outlines up
-      to half a second apart: in the warehouse the robot's fix was 9-17 cm off (p90, 44 cm at
-      worst) where per camera it was 2-5 cm (16 cm).
+      for a second after the robot starts again (a stationary track). Asked fused (with the
+      fusion stage giving its newest camera's outline), the robot lost itself at the edge of
+      the cameras' view in the tags world and ran into the walker in the crossing, runs that
+      pass asked per camera; in the warehouse its fix was 9-17 cm off (p90) where per camera
+      it was 2-5 cm.
     - Static obstacles: they never move, so a per-camera watch calls back next to nothing, and
       each camera's outline of a shelf stands until it changes, where the fusion stage's
       outline of a shelf wider than one camera's view comes in parts.
