@@ -2,7 +2,8 @@
 # A private PostgreSQL + PostGIS cluster for DRVS's registry (docs/registry.md).
 #
 #   scripts/postgres.sh start DIR   create (first time) and start a cluster in DIR on a free port of
-#                                   127.0.0.1; its DSN is the last line on stdout
+#                                   127.0.0.1 (again: the same port if it is free); its DSN is the
+#                                   last line on stdout
 #   scripts/postgres.sh stop DIR    stop it (the files stay; start again, or rm -rf DIR)
 #   scripts/postgres.sh dsn DIR     print the DSN of a started cluster
 #
@@ -75,8 +76,12 @@ case "$action" in
       exit 0
     fi
     started=no
-    for _ in 1 2 3 4 5; do  # a free port may be taken between the check and the start: try another
-      port=$(free_port)
+    # The port of the last start if it is still free (a restart keeps its DSN), else a free one; a free
+    # port may be taken between the check and the start: then another.
+    previous=$(cat "$dir/port" 2>/dev/null || true)
+    for _ in 1 2 3 4 5; do
+      port=${previous:-$(free_port)}
+      previous=
       if as_owner "$bin/pg_ctl" -D "$dir/data" -l "$dir/server.log" -w -t 30 -o "-p $port" start >/dev/null; then
         echo "$port" > "$dir/port"
         started=yes

@@ -184,7 +184,8 @@ class PgStore:
             exists = connection.execute("SELECT to_regclass('drvs_schema') IS NOT NULL").fetchone()[0]
             if not exists:
                 others = connection.execute(
-                    "SELECT count(*) FROM pg_tables WHERE schemaname = current_schema() AND tablename LIKE 'drvs%%'"
+                    'SELECT count(*) FROM pg_tables WHERE schemaname = current_schema() '
+                    "AND tablename LIKE 'drvs%%'"
                 ).fetchone()[0]
                 if others:
                     raise StoreError(
@@ -274,8 +275,8 @@ class PgStore:
                 connection.execute(
                     f"""INSERT INTO drvs_vision_systems (service_name, field_of_view, outline, algorithms,
                             provider, instance, watch_service, expires_at, replica)
-                        VALUES (%(name)s, ST_GeomFromWKB(%(shape)s), %(outline)s, %(algorithms)s, %(provider)s,
-                            %(instance)s, %(watch_service)s, {NOW} + %(lease)s, %(replica)s)
+                        VALUES (%(name)s, ST_GeomFromWKB(%(shape)s), %(outline)s, %(algorithms)s,
+                            %(provider)s, %(instance)s, %(watch_service)s, {NOW} + %(lease)s, %(replica)s)
                         ON CONFLICT (service_name) DO UPDATE SET field_of_view = excluded.field_of_view,
                             outline = excluded.outline, algorithms = excluded.algorithms,
                             provider = excluded.provider, instance = excluded.instance,
@@ -305,20 +306,26 @@ class PgStore:
 
         self._run(work)
 
-    def renew(self, names: Sequence[str], lease: float) -> list[str]:
+    def renew(self, renewals: Sequence[tuple[str, float]], lease: float) -> list[str]:
         def work(connection):
             found: set[str] = set()
-            for start in range(0, len(names), RENEW_BATCH):
-                batch = list(names[start : start + RENEW_BATCH])
+            for start in range(0, len(renewals), RENEW_BATCH):
+                batch = renewals[start : start + RENEW_BATCH]
                 with connection.transaction():
                     connection.execute('SET LOCAL synchronous_commit = off')
                     rows = connection.execute(
-                        f"""UPDATE drvs_vision_systems SET expires_at = {NOW} + %(lease)s
-                            WHERE service_name = ANY(%(names)s) RETURNING service_name""",
-                        {'names': batch, 'lease': lease, 'now': self._now()},
+                        f"""UPDATE drvs_vision_systems v SET expires_at = {NOW} + %(lease)s - r.ago
+                            FROM unnest(%(names)s::text[], %(ages)s::float8[]) AS r(name, ago)
+                            WHERE v.service_name = r.name RETURNING v.service_name""",
+                        {
+                            'names': [name for name, _ in batch],
+                            'ages': [age for _, age in batch],
+                            'lease': lease,
+                            'now': self._now(),
+                        },
                     ).fetchall()
                 found.update(row[0] for row in rows)
-            return [name for name in names if name not in found]
+            return [name for name, _ in renewals if name not in found]
 
         return self._run(work)
 
@@ -387,7 +394,9 @@ class PgStore:
 
         def work(connection):
             if not self._sweeper:
-                self._sweeper = connection.execute('SELECT pg_try_advisory_lock(%s)', (SWEEP_LOCK,)).fetchone()[0]
+                self._sweeper = connection.execute(
+                    'SELECT pg_try_advisory_lock(%s)', (SWEEP_LOCK,)
+                ).fetchone()[0]
                 if not self._sweeper:
                     return False
             with connection.transaction():
@@ -403,7 +412,9 @@ class PgStore:
                         AND seq < (SELECT max(seq) FROM drvs_changes)""",
                     values,
                 )
-                connection.execute(f'DELETE FROM drvs_ejections WHERE refused_until + %(most)s < {NOW}', values)
+                connection.execute(
+                    f'DELETE FROM drvs_ejections WHERE refused_until + %(most)s < {NOW}', values
+                )
                 connection.execute(f'DELETE FROM drvs_watches WHERE expires_at <= {NOW}', values)
             return True
 

@@ -341,6 +341,10 @@ class Registry:
                     del self._ejections[name]
         return removed
 
+    def sync(self) -> list[Registration]:
+        """The server's periodic call: :meth:`expire` (a shared registry also follows its store)."""
+        return self.expire()
+
     def record_success(self, service_name: str) -> None:
         """A forward succeeded: the run of failures and past ejections are forgotten."""
         with self._lock:

@@ -3,9 +3,9 @@ what each server decides with it.
 
 :class:`SharedRegistry` is a :class:`~drvs.server.registry.Registry` whose entries, ejections and
 watches also live in a :class:`RegistryStore` (PostgreSQL: :mod:`drvs.server.pg_store`). Its own
-in-memory index stays the cache every match is answered from; :meth:`SharedRegistry.expire`, called
-a few times a second, writes the renewals in one batch, sweeps expired leases (one replica at a
-time) and follows the store's change log. While the store is out of reach, matches and renewals go
+in-memory index stays the cache every match is answered from; :meth:`SharedRegistry.sync`, called a
+few times a second, writes the renewals in one batch, sweeps expired leases (one replica at a time)
+and follows the store's change log. While the store is out of reach, matches and renewals go
 on from the cache and new registrations are refused ``UNAVAILABLE``. No database here: the store
 is injected, and tests give a fake. Schema, outage and how to run it: docs/registry.md.
 """
@@ -115,8 +115,9 @@ class RegistryStore(Protocol):
 
     def delete(self, service_name: str) -> None: ...
 
-    def renew(self, names: Sequence[str], lease: float) -> list[str]:
-        """Extend the leases of ``names`` by ``lease`` from now (not logged); the names it does not hold."""
+    def renew(self, renewals: Sequence[tuple[str, float]], lease: float) -> list[str]:
+        """Renew each (name, seconds ago) of ``renewals``: its lease ends ``lease`` after that moment
+        (not logged as a change); the names it does not hold."""
         ...
 
     def ejection(self, service_name: str) -> StoredEjection | None:
@@ -188,7 +189,7 @@ class SharedRegistry(Registry):
         self.retry_after = float(retry_after)
         self._position = 0  # the change log's position the cache is current at
         self._claimed: set[str] = set()  # entries whose vision system renews through this replica
-        self._renewals: set[str] = set()  # renewed here since the last batch
+        self._renewals: dict[str, float] = {}  # renewed here since the last batch -> when (clock)
         self._pending: list[tuple] = []  # writes that found the store out of reach, in order
         self._applying = False  # a removal comes from the change log: not written back
         self._next_flush = self._next_sweep = self._next_try = -math.inf
@@ -235,7 +236,7 @@ class SharedRegistry(Registry):
         name = entry.service_name
         if change == RENEWED and (name in self._claimed or self.down_since is not None):
             self._claimed.add(name)  # kept in the cache; written with the next batch
-            self._renewals.add(name)
+            self._renewals[name] = entry.expires_at - self.lease
             return
         if self.down_since is not None:
             raise self._unavailable()
@@ -245,11 +246,11 @@ class SharedRegistry(Registry):
             self._went_down(error)
             raise self._unavailable() from None
         self._claimed.add(name)
-        self._renewals.discard(name)
+        self._renewals.pop(name, None)
 
     def _removed(self, entry: Registration) -> None:
         self._claimed.discard(entry.service_name)
-        self._renewals.discard(entry.service_name)
+        self._renewals.pop(entry.service_name, None)
         if not self._applying:
             self._write(('delete', entry.service_name))
 
@@ -303,24 +304,36 @@ class SharedRegistry(Registry):
 
     # -- the periodic work -----------------------------------------------------------------------
     def expire(self) -> list[Registration]:
-        """Write the renewals, sweep (if due, and if this replica is the sweeper) and follow the
-        change log: the entries removed from the cache (close their clients).
+        """Write the renewals, sweep (if this replica is the sweeper) and follow the change log now:
+        the entries removed from the cache (close their clients)."""
+        return self._tick(flush=True, sweep=True)
 
-        While the store is out of reach, nothing expires: the cache keeps serving.
-        """
+    def sync(self) -> list[Registration]:
+        """:meth:`expire`, with the renewals written every ``flush_period`` and the sweep every
+        ``sweep_period`` (the server calls it a few times a second). While the store is out of
+        reach, nothing expires: the cache keeps serving, and the store is tried every ``retry_after``."""
+        now = self.clock()
+        flush, sweep = now >= self._next_flush, now >= self._next_sweep
+        return self._tick(flush, sweep)
+
+    def _tick(self, flush: bool, sweep: bool) -> list[Registration]:
         now = self.clock()
         if self.down_since is not None and now < self._next_try:
             return []
         try:
             if self.down_since is not None:
                 self._catch_up()
-            if now >= self._next_flush:
+            if flush:
                 self._next_flush = now + self.flush_period
                 self.flush()
-            if now >= self._next_sweep:
+            if sweep:
                 self._next_sweep = now + self.sweep_period
                 self.store.heartbeat()
                 self.store.sweep(self.max_ejection_time)
+                with self._lock:  # bounded: forget the ejections seen here long ago
+                    for name, (_, until, _) in list(self._ejections.items()):
+                        if until + self.max_ejection_time < now:
+                            del self._ejections[name]
             return self.follow()
         except StoreUnavailable as error:
             self._went_down(error)
@@ -332,7 +345,9 @@ class SharedRegistry(Registry):
             self._run(self._pending[0])
             self._pending.pop(0)
         with self._lock:
-            self._renewals |= self._claimed
+            for name in self._claimed:
+                if name in self._entries:
+                    self._renewals.setdefault(name, self._entries[name].expires_at - self.lease)
         self.flush()
         logger.info(
             'registry database reachable again after %.1f s: caught up', self.clock() - self.down_since
@@ -344,18 +359,20 @@ class SharedRegistry(Registry):
         """Write the renewals made since the last batch; an entry the store lost meanwhile (swept
         while this replica could not renew it) is written again whole."""
         with self._lock:
-            names, self._renewals = sorted(self._renewals), set()
-        if not names:
+            renewals, self._renewals = self._renewals, {}
+        if not renewals:
             return
+        now = self.clock()
         try:
-            missing = self.store.renew(names, self.lease)
+            missing = self.store.renew(sorted((name, now - at) for name, at in renewals.items()), self.lease)
             with self._lock:
                 lost = [self._entries[n] for n in missing if n in self._entries and n in self._claimed]
             for entry in lost:
                 self.store.write(_stored(entry, self.store.replica), self.lease)
         except StoreUnavailable:
             with self._lock:
-                self._renewals.update(names)
+                for name, at in renewals.items():
+                    self._renewals.setdefault(name, at)
             raise
 
     def follow(self) -> list[Registration]:
@@ -401,7 +418,7 @@ class SharedRegistry(Registry):
         mine = stored.replica == self.store.replica
         if not mine:
             self._claimed.discard(name)  # its vision system renews through another replica now
-            self._renewals.discard(name)
+            self._renewals.pop(name, None)
         names = frozenset(stored.algorithms) if stored.algorithms else algorithm_names(())
         expires_at = self.clock() + stored.lease_left
         if (

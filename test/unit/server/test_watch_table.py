@@ -7,7 +7,6 @@ import pytest
 import drvs.server.watch_table
 from drvs.common.validation import ValidationError
 from drvs.server.dispatch import Busy
-from drvs.server.registry import Registry
 from drvs.server.watch_table import (
     CANCELLED,
     NEW,
@@ -47,8 +46,9 @@ def clock():
 
 
 @pytest.fixture
-def registry(clock):
-    return Registry(lease=1000.0, clock=clock)
+def registry(clock, new_registry):
+    """A registry of each backend (memory, PostgreSQL: test/unit/server/conftest.py)."""
+    return new_registry(lease=1000.0, clock=clock)
 
 
 @pytest.fixture
