@@ -13,6 +13,7 @@ from __future__ import annotations
 import threading
 import uuid
 from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 import psycopg
 from psycopg import conninfo
@@ -29,6 +30,8 @@ from drvs.server.shared_registry import (
 from drvs.server.spatial_index import _box_geometry
 
 __all__ = ['SCHEMA_VERSION', 'PgStore', 'describe_dsn']
+
+T = TypeVar('T')
 
 SCHEMA_VERSION = 1
 """The schema this code reads and writes (table ``drvs_schema``); another one is refused."""
@@ -78,20 +81,22 @@ SCHEMA = [
         refused_until float8 NOT NULL,
         instance text NOT NULL
     )""",
+    # A watch's texts come from callers as they are (a request_id may hold any character, NUL too,
+    # which PostgreSQL's text cannot): kept as their UTF-8 bytes.
     """CREATE TABLE drvs_watches (
-        caller text NOT NULL,
-        request_id text NOT NULL,
+        caller bytea NOT NULL,
+        request_id bytea NOT NULL,
         owner text NOT NULL,
-        algorithm text NOT NULL,
-        algorithm_name text NOT NULL,
+        algorithm bytea NOT NULL,
+        algorithm_name bytea NOT NULL,
         region float8[] NOT NULL,
-        callback_service text NOT NULL,
+        callback_service bytea NOT NULL,
         period float8 NOT NULL,
         duration float8 NOT NULL,
         changes_only boolean NOT NULL,
         expires_at float8 NOT NULL,
-        forward_callback text,
-        forward_request_id text,
+        forward_callback bytea,
+        forward_request_id bytea,
         PRIMARY KEY (caller, request_id)
     )""",
     'CREATE TABLE drvs_replicas (replica text PRIMARY KEY, seen float8 NOT NULL)',
@@ -181,12 +186,12 @@ class PgStore:
     def _check_schema(self, connection: psycopg.Connection) -> None:
         with connection.transaction():
             connection.execute('SELECT pg_advisory_xact_lock(%s)', (SETUP_LOCK,))
-            exists = connection.execute("SELECT to_regclass('drvs_schema') IS NOT NULL").fetchone()[0]
+            exists = connection.execute("SELECT to_regclass('drvs_schema') IS NOT NULL").fetchone()[0]  # type: ignore[index]
             if not exists:
                 others = connection.execute(
                     'SELECT count(*) FROM pg_tables WHERE schemaname = current_schema() '
                     "AND tablename LIKE 'drvs%%'"
-                ).fetchone()[0]
+                ).fetchone()[0]  # type: ignore[index]
                 if others:
                     raise StoreError(
                         f'~registry: the database {self.where} has drvs tables but no drvs_schema table: '
@@ -213,7 +218,7 @@ class PgStore:
     def _now(self) -> float | None:
         return self.clock() if self.clock is not None else None
 
-    def _run(self, work: Callable[[psycopg.Connection], object]) -> object:
+    def _run(self, work: Callable[[psycopg.Connection], T]) -> T:
         """``work(connection)`` under the store's lock; a lost connection is :class:`StoreUnavailable`."""
         with self._lock:
             connection = self._connect()
@@ -229,7 +234,7 @@ class PgStore:
         def work(connection):
             with connection.transaction():
                 connection.execute('SET TRANSACTION ISOLATION LEVEL REPEATABLE READ')
-                position = connection.execute('SELECT coalesce(max(seq), 0) FROM drvs_changes').fetchone()[0]
+                position = connection.execute('SELECT coalesce(max(seq), 0) FROM drvs_changes').fetchone()[0]  # type: ignore[index]
                 rows = connection.execute(
                     f'SELECT service_name, {ENTRY_COLUMNS} FROM drvs_vision_systems', {'now': self._now()}
                 ).fetchall()
@@ -240,7 +245,7 @@ class PgStore:
     def changes(self, after: int) -> list[Change] | None:
         def work(connection):
             with connection.transaction():
-                oldest = connection.execute('SELECT min(seq) FROM drvs_changes').fetchone()[0]
+                oldest = connection.execute('SELECT min(seq) FROM drvs_changes').fetchone()[0]  # type: ignore[index]
                 if oldest is not None and oldest > after + 1:
                     return None
                 rows = connection.execute(
@@ -396,7 +401,7 @@ class PgStore:
             if not self._sweeper:
                 self._sweeper = connection.execute(
                     'SELECT pg_try_advisory_lock(%s)', (SWEEP_LOCK,)
-                ).fetchone()[0]
+                ).fetchone()[0]  # type: ignore[index]
                 if not self._sweeper:
                     return False
             with connection.transaction():
@@ -433,19 +438,19 @@ class PgStore:
     def save_watch(self, watch: StoredWatch) -> None:
         forward = watch.forward_as or (None, None)
         values = {
-            'caller': watch.caller,
-            'request_id': watch.request_id,
+            'caller': _bytes(watch.caller),
+            'request_id': _bytes(watch.request_id),
             'owner': self.replica,
-            'algorithm': watch.algorithm,
-            'algorithm_name': watch.algorithm_name,
+            'algorithm': _bytes(watch.algorithm),
+            'algorithm_name': _bytes(watch.algorithm_name),
             'region': list(watch.region),
-            'callback': watch.callback_service,
+            'callback': _bytes(watch.callback_service),
             'period': watch.period,
             'duration': watch.duration,
             'changes_only': watch.changes_only,
             'left': watch.left,
-            'forward_callback': forward[0],
-            'forward_request_id': forward[1],
+            'forward_callback': _bytes(forward[0]),
+            'forward_request_id': _bytes(forward[1]),
             'now': self._now(),
         }
         self._run(
@@ -471,7 +476,7 @@ class PgStore:
         self._run(
             lambda c: c.execute(
                 'DELETE FROM drvs_watches WHERE caller = %s AND request_id = %s AND owner = %s',
-                (caller, request_id, self.replica),
+                (_bytes(caller), _bytes(request_id), self.replica),
             )
         )
 
@@ -492,17 +497,17 @@ class PgStore:
         rows = self._run(work)
         return [
             StoredWatch(
-                row[0],
-                row[1],
-                row[2],
-                row[3],
-                tuple(row[4]),
-                row[5],
+                _text(row[0]),
+                _text(row[1]),
+                _text(row[2]),
+                _text(row[3]),
+                (row[4][0], row[4][1], row[4][2], row[4][3]),
+                _text(row[5]),
                 row[6],
                 row[7],
                 row[8],
                 row[9],
-                (row[10], row[11]) if row[10] is not None else None,
+                (_text(row[10]), _text(row[11])) if row[10] is not None else None,
             )
             for row in rows
         ]
@@ -519,7 +524,15 @@ class PgStore:
         self._run(work)
 
 
-def _entry(name: str, row: Sequence) -> StoredEntry:
+def _entry(name: str, row: Sequence[Any]) -> StoredEntry:
     outline, algorithms, provider, instance, watch_service, left, replica = row
     points = tuple(zip(outline[0::2], outline[1::2], strict=True))
     return StoredEntry(name, points, tuple(algorithms), provider, instance, watch_service, left, replica)
+
+
+def _bytes(text: str | None) -> bytes | None:
+    return None if text is None else text.encode('utf-8', 'surrogatepass')
+
+
+def _text(data: bytes) -> str:
+    return bytes(data).decode('utf-8', 'surrogatepass')

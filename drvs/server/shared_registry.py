@@ -23,6 +23,7 @@ from drvs.common.status import UNAVAILABLE, Refusal
 from drvs.common.validation import field_of_view_polygon
 from drvs.server.registry import RENEWED, Client, Registration, Registry, algorithm_names
 from drvs.server.spatial_index import FieldOfViewIndex
+from drvs.server.watch_table import Watch
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -35,6 +36,8 @@ __all__ = [
     'StoredEjection',
     'StoredEntry',
     'StoredWatch',
+    'adopted_watch',
+    'stored_watch',
 ]
 
 
@@ -100,6 +103,7 @@ class RegistryStore(Protocol):
     """What a shared registry writes through. Every method may raise :class:`StoreUnavailable`."""
 
     replica: str  # this server's name among the replicas
+    where: str  # the store for messages (no password)
 
     def snapshot(self) -> tuple[int, list[StoredEntry]]:
         """Every live entry, and the change-log position they are current at."""
@@ -196,6 +200,8 @@ class SharedRegistry(Registry):
         self.down_since: float | None = None  # on the clock, while the store is out of reach
         self.down_reason = ''
         self.recoveries = 0  # times the store came back (the server saves its watches again)
+        self.restarted: list[str] = []  # entries another replica registered anew (a new process): the
+        # server forwards their watches again (:meth:`~drvs.server.watch_table.WatchTable.forget`)
 
     # -- the store's state ------------------------------------------------------------------------
     def load(self) -> None:
@@ -350,7 +356,8 @@ class SharedRegistry(Registry):
                     self._renewals.setdefault(name, self._entries[name].expires_at - self.lease)
         self.flush()
         logger.info(
-            'registry database reachable again after %.1f s: caught up', self.clock() - self.down_since
+            'registry database reachable again after %.1f s: caught up',
+            self.clock() - (self.down_since or 0.0),
         )
         self.down_since, self.down_reason = None, ''
         self.recoveries += 1
@@ -434,6 +441,8 @@ class SharedRegistry(Registry):
         polygon = old.polygon if old is not None and old.field_of_view == stored.field_of_view else None
         if polygon is None:
             polygon = field_of_view_polygon(stored.field_of_view)
+        if old is not None and old.instance != stored.instance:
+            self.restarted.append(name)
         client = old.client if old is not None else None
         if client is None and self.make_client is not None:
             client = self.make_client(name)
@@ -472,4 +481,38 @@ def _stored(entry: Registration, replica: str) -> StoredEntry:
         entry.watch_service,
         0.0,
         replica,
+    )
+
+
+def stored_watch(watch: Watch, now: float) -> StoredWatch:
+    """``watch`` as the store keeps it, its time left counted at ``now`` (the watch table's clock)."""
+    return StoredWatch(
+        watch.caller,
+        watch.request_id,
+        watch.algorithm,
+        watch.algorithm_name,
+        watch.region,
+        watch.callback_service,
+        watch.period,
+        watch.duration,
+        watch.changes_only,
+        watch.expires_at - now,
+        watch.forward_as,
+    )
+
+
+def adopted_watch(stored: StoredWatch, now: float) -> Watch:
+    """A watch taken over from the store, expiring ``stored.left`` after ``now`` (the table's clock)."""
+    return Watch(
+        stored.caller,
+        stored.request_id,
+        stored.algorithm,
+        stored.algorithm_name,
+        stored.region,
+        stored.callback_service,
+        stored.period,
+        stored.duration,
+        stored.changes_only,
+        now + stored.left,
+        stored.forward_as,
     )

@@ -211,7 +211,7 @@ def test_watches_of_a_replica_gone_silent_are_taken_over(stores, clock):
     first.clear()
     watch = StoredWatch(
         '/robot',
-        'w1',
+        'w\x00 ☃',
         'colour:1,2,3,4,5,6',
         'colour',
         (0.0, 0.0, 1.0, 1.0),
@@ -231,13 +231,13 @@ def test_watches_of_a_replica_gone_silent_are_taken_over(stores, clock):
     [taken] = second.orphaned_watches(stale_after=5.0)
     assert (taken.caller, taken.request_id, taken.region, taken.left, taken.forward_as) == (
         '/robot',
-        'w1',
+        'w\x00 ☃',
         (0.0, 0.0, 1.0, 1.0),
         20.0,
         ('/drvs/fused', 'f7'),
     )
     assert second.orphaned_watches(stale_after=5.0) == []  # taken once
-    second.drop_watch('/robot', 'w1')
+    second.drop_watch('/robot', 'w\x00 ☃')
     clock.now += 10
     assert first.orphaned_watches(stale_after=5.0) == []
 
