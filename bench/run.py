@@ -40,6 +40,7 @@ SECTIONS = (
     'latency',
     'throughput',
     'registry',
+    'registry_db',
     'vision',
     'planner',
     'fleet',

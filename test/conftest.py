@@ -1,6 +1,6 @@
 """Fixtures shared by the whole suite.
 
-``postgres``: a private PostgreSQL cluster per module (its ``dsn``), stopped and removed after it.
+``postgres``: a private PostgreSQL cluster for the session (its ``dsn``), stopped and removed after it.
 ``ros``: a :class:`drvs.testing.RosHarness` per test — a private rosmaster on a
 free port with its own ROS_HOME and log folder; every node started through it
 is stopped at teardown, also when the test fails or times out. In a module marked
@@ -51,9 +51,10 @@ def ros(request):
         harness.close()
 
 
-@pytest.fixture(scope='module')
+@pytest.fixture(scope='session')
 def postgres():
-    """A private PostgreSQL cluster for the whole module (drvs.testing.postgres), removed afterwards."""
+    """A private PostgreSQL cluster (drvs.testing.postgres), started by the first test that needs it and
+    removed at the end of the session; each test empties the tables it uses."""
     with PostgresCluster() as cluster:
         yield cluster
 
