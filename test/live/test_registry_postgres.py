@@ -1,6 +1,9 @@
 """drvs_server on a PostgreSQL registry (docs/registry.md): a database restart under a running
 server, a bad DSN, and hostile text through all three services reaching SQL only as parameters."""
 
+import os
+import signal
+
 import psycopg
 import pytest
 
@@ -172,3 +175,73 @@ def test_hostile_text_reaches_sql_only_as_parameters(ros, postgres, server, tmp_
         names = connection.execute('SELECT service_name FROM drvs_vision_systems').fetchall()
         assert names == [('/cam1/detect_object_boundary',)]
     assert node.running()
+
+
+def test_replicas_share_registrations_and_a_killed_one_loses_nothing_registered_nor_its_watches(
+    ros, postgres, server, tmp_path
+):
+    """Two servers on one database: a camera registered through the first is matched through the
+    second; kill -9 of the first: the second still forwards to it, and takes the first's watch over
+    (a camera that comes later gets it)."""
+    first, clients = server
+    second = ros.start_node(
+        SERVER, name='drvs_b', params={'registry': postgres.dsn, 'watch_takeover': 1.0, 'lease': 10.0}
+    )
+    ros.wait_for_service('/drvs_b/detect_object_boundary', node=second)
+    output = tmp_path / 'cam1.jsonl'
+    ros.start_node(
+        FAKE,
+        name='cam1',
+        params={'output': output, 'field_of_view': square(0, 0, 2, 2), 'renew': 1.0, 'watch': True},
+    )
+    wait_for(lambda: any(r['accepted'] for r in records(output, 'register')), 30, 'cam1 registered')
+    via_second = ServiceClient('/drvs_b/detect_object_boundary', DetectObjectBoundary, 10.0)
+    try:
+
+        def asked_second(request_id):
+            request = DetectObjectBoundary._request_class(
+                algorithm=COLOUR,
+                region_of_interest=BoundingBox(0.5, 0.5, 1.0, 1.0),
+                callback_service=CALLBACK,
+                request_id=request_id,
+            )
+            return via_second.call(request).vision_systems
+
+        wait_for(lambda: asked_second('b1') == 1, 10, 'the second replica matching cam1')
+        watch = WatchObjectBoundary._request_class(
+            algorithm=COLOUR,
+            region_of_interest=BoundingBox(0.5, 0.5, 4.0, 1.0),
+            callback_service=CALLBACK,
+            request_id='w1',
+            period=0.5,
+            duration=60.0,
+        )
+        assert clients['watch'].call(watch).status == ACCEPTED
+        wait_for(lambda: records(output, 'watch'), 10, 'the watch forwarded to cam1')
+        os.killpg(first.pid, signal.SIGKILL)
+        first.process.wait(10)
+        for n in range(
+            5
+        ):  # requests keep flowing through the second, to the camera registered through the first
+            assert asked_second(f'after{n}') == 1
+        later = tmp_path / 'cam2.jsonl'
+        ros.start_node(
+            FAKE,
+            name='cam2',
+            params={
+                'output': later,
+                'field_of_view': square(3, 0, 5, 2),
+                'renew': 1.0,
+                'watch': True,
+                'server': '/drvs_b/register_vision_service',
+            },
+        )
+        got = wait_for(lambda: records(later, 'watch'), 30, 'the taken-over watch forwarded to cam2')
+        assert got[0]['request_id'] == 'w1' and got[0]['callback_service'] == CALLBACK
+    finally:
+        via_second.close()
+    with psycopg.connect(postgres.dsn) as connection:
+        names = [
+            row[0] for row in connection.execute('SELECT service_name FROM drvs_vision_systems ORDER BY 1')
+        ]
+    assert names == ['/cam1/detect_object_boundary', '/cam2/detect_object_boundary']
