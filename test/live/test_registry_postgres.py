@@ -220,10 +220,16 @@ def test_replicas_share_registrations_and_a_killed_one_loses_nothing_registered_
         wait_for(lambda: records(output, 'watch'), 10, 'the watch forwarded to cam1')
         os.killpg(first.pid, signal.SIGKILL)
         first.process.wait(10)
-        for n in range(
-            5
-        ):  # requests keep flowing through the second, to the camera registered through the first
+        # Requests keep flowing through the second, to the camera registered through the first;
+        # drvs_ask given both moves on to the second.
+        for n in range(5):
             assert asked_second(f'after{n}') == 1
+        asked = ros.run(
+            f"drvs_ask '{COLOUR}' --roi 0.5 0.5 1 1 --wait 0.1 --timeout 10 "
+            '--server /drvs/detect_object_boundary /drvs_b/detect_object_boundary'
+        )
+        assert 'asking /drvs_b/detect_object_boundary' in asked.stderr, asked.stderr
+        assert 'vision_systems: 1' in asked.stdout, asked.stdout + asked.stderr
         later = tmp_path / 'cam2.jsonl'
         ros.start_node(
             FAKE,
