@@ -47,7 +47,7 @@ bench: postgres-setup
 	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --docs) $(BENCH_ARGS)
 
 # ruff, then mypy over the pure packages ([tool.mypy] in pyproject.toml).
-lint: setup
+lint: postgres-setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m mypy

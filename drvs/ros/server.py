@@ -182,7 +182,12 @@ class DrvsServer:
         )
         if settings.registry == 'memory':
             return Registry(**limits)
-        from drvs.server.pg_store import PgStore  # psycopg only when a database is asked for
+        try:
+            from drvs.server.pg_store import PgStore  # psycopg only when a database is asked for
+        except ImportError as error:
+            raise StoreError(
+                f'~registry: a PostgreSQL registry needs psycopg 3 ({error}): run scripts/setup.sh --postgres'
+            ) from None
 
         replica = f'{rospy.get_name()}@{socket.gethostname()}:{os.getpid()}'
         store = PgStore(settings.registry, replica=replica)

@@ -233,12 +233,18 @@ class PgStore:
     def snapshot(self) -> tuple[int, list[StoredEntry]]:
         def work(connection):
             with connection.transaction():
+                # A million rows take longer than the statement limit: no limit for this one read,
+                # streamed through a server-side cursor.
                 connection.execute('SET TRANSACTION ISOLATION LEVEL REPEATABLE READ')
+                connection.execute('SET LOCAL statement_timeout = 0')
                 position = connection.execute('SELECT coalesce(max(seq), 0) FROM drvs_changes').fetchone()[0]  # type: ignore[index]
-                rows = connection.execute(
-                    f'SELECT service_name, {ENTRY_COLUMNS} FROM drvs_vision_systems', {'now': self._now()}
-                ).fetchall()
-            return position, [_entry(row[0], row[1:]) for row in rows]
+                with connection.cursor(name='drvs_snapshot') as cursor:
+                    cursor.itersize = 10_000
+                    cursor.execute(
+                        f'SELECT service_name, {ENTRY_COLUMNS} FROM drvs_vision_systems', {'now': self._now()}
+                    )
+                    entries = [_entry(row[0], row[1:]) for row in cursor]
+            return position, entries
 
         return self._run(work)
 
