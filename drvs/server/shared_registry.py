@@ -165,7 +165,10 @@ class SharedRegistry(Registry):
     :param store: the shared store (connected; :meth:`load` reads it).
     :param make_client: the client of an entry another replica registered (no I/O).
     :param flush_period: seconds between two batches of renewals written to the store.
-    :param sweep_period: seconds between two sweeps of expired leases.
+    :param sweep_period: seconds between two sweeps of expired leases (default: half a lease; a sweep
+        scans every lease, 0.8 s of the database's time at a million: docs/registry.md).
+    :param heartbeat_period: seconds between two heartbeats (the other replicas take this one's
+        watches over when they stop).
     :param retry_after: seconds a registration refused while the store is out of reach is told to wait,
         and between two attempts to reach it again.
     The other parameters: :class:`~drvs.server.registry.Registry`.
@@ -183,20 +186,22 @@ class SharedRegistry(Registry):
         make_client: Callable[[str], Client] | None = None,
         flush_period: float = 0.5,
         sweep_period: float | None = None,
+        heartbeat_period: float = 1.0,
         retry_after: float = 1.0,
     ):
         super().__init__(lease, max_failures, clock, index, ejection_time, max_ejection_time)
         self.store = store
         self.make_client = make_client
         self.flush_period = float(flush_period)
-        self.sweep_period = float(sweep_period if sweep_period is not None else min(self.lease / 4, 1.0))
+        self.sweep_period = float(sweep_period if sweep_period is not None else self.lease / 2)
+        self.heartbeat_period = float(heartbeat_period)
         self.retry_after = float(retry_after)
         self._position = 0  # the change log's position the cache is current at
         self._claimed: set[str] = set()  # entries whose vision system renews through this replica
         self._renewals: dict[str, float] = {}  # renewed here since the last batch -> when (clock)
         self._pending: list[tuple] = []  # writes that found the store out of reach, in order
         self._applying = False  # a removal comes from the change log: not written back
-        self._next_flush = self._next_sweep = self._next_try = -math.inf
+        self._next_flush = self._next_sweep = self._next_heartbeat = self._next_try = -math.inf
         self.down_since: float | None = None  # on the clock, while the store is out of reach
         self.down_reason = ''
         self.recoveries = 0  # times the store came back (the server saves its watches again)
@@ -332,9 +337,11 @@ class SharedRegistry(Registry):
             if flush:
                 self._next_flush = now + self.flush_period
                 self.flush()
+            if now >= self._next_heartbeat:
+                self._next_heartbeat = now + self.heartbeat_period
+                self.store.heartbeat()
             if sweep:
                 self._next_sweep = now + self.sweep_period
-                self.store.heartbeat()
                 self.store.sweep(self.max_ejection_time)
                 with self._lock:  # bounded: forget the ejections seen here long ago
                     for name, (_, until, _) in list(self._ejections.items()):

@@ -185,7 +185,7 @@ def test_replicas_share_registrations_and_a_killed_one_loses_nothing_registered_
     (a camera that comes later gets it)."""
     first, clients = server
     second = ros.start_node(
-        SERVER, name='drvs_b', params={'registry': postgres.dsn, 'watch_takeover': 1.0, 'lease': 10.0}
+        SERVER, name='drvs_b', params={'registry': postgres.dsn, 'watch_takeover': 2.0, 'lease': 10.0}
     )
     ros.wait_for_service('/drvs_b/detect_object_boundary', node=second)
     output = tmp_path / 'cam1.jsonl'
