@@ -655,13 +655,15 @@ class DrvsServer:
         not kept: their callbacks go through this replica's fusion stage."""
         if not isinstance(self.registry, SharedRegistry) or watch.forward_as is not None:
             return
+        if self.registry.down_since is not None:
+            return  # saved again once the database is back
         try:
             self.registry.store.save_watch(stored_watch(watch, rospy.get_time()))
         except StoreUnavailable:
             pass  # saved again once the database is back (_follow_shared)
 
     def _drop_watch(self, caller: str, request_id: str) -> None:
-        if isinstance(self.registry, SharedRegistry):
+        if isinstance(self.registry, SharedRegistry) and self.registry.down_since is None:
             try:
                 self.registry.store.drop_watch(caller, request_id)
             except StoreUnavailable:
