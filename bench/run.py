@@ -41,6 +41,7 @@ SECTIONS = (
     'throughput',
     'registry',
     'registry_db',
+    'replicas',
     'vision',
     'planner',
     'fleet',

@@ -2,8 +2,8 @@
 
 Read from the source (drvs/server/pg_store.py): a statement is a string literal, or an f-string
 whose every interpolation is one of the module's constant SQL fragments (or, in ``clear``, a
-table name from a literal tuple), or one of the constant ``SCHEMA`` statements; never a value. The hostile-text test against a running server:
-test/live/test_registry_postgres.py.
+table name from a literal tuple), or one of the constant ``SCHEMA`` statements; never a value.
+The hostile-text test against a running server: test/live/test_registry_postgres.py.
 """
 
 import ast
