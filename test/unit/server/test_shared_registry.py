@@ -269,3 +269,18 @@ def test_a_bad_dsn_or_password_is_one_clear_line(dsn, change, expected):
     message = str(caught.value)
     assert expected in message and '\n' not in message
     assert dsn.split(':')[2].split('@')[0] not in message  # never the password
+
+
+def test_a_replica_behind_a_pruned_change_log_reads_a_snapshot(replicas, dsn):
+    first, second = replicas
+    first.register('/a', square(0, 0))
+    first.register('/b', square(2, 0))
+    second.sync()
+    first.register('/c', square(4, 0))
+    first.unregister('/a')
+    with psycopg.connect(dsn, autocommit=True) as connection:  # the sweeper pruned what second has not read
+        connection.execute('DELETE FROM drvs_changes WHERE seq < (SELECT max(seq) FROM drvs_changes)')
+    removed = second.sync()
+    assert [entry.service_name for entry in removed] == ['/a']
+    assert sorted(entry.service_name for entry in second.entries()) == ['/b', '/c']
+    assert second.match((4.2, 0.2, 4.4, 0.4)) == ['/c']
