@@ -660,7 +660,7 @@ class DrvsServer:
         try:
             self.registry.store.save_watch(stored_watch(watch, rospy.get_time()))
         except StoreUnavailable:
-            pass  # saved again once the database is back (_follow_shared)
+            pass  # saved again at its next renewal, or once the database is back (_follow_shared)
 
     def _drop_watch(self, caller: str, request_id: str) -> None:
         if isinstance(self.registry, SharedRegistry) and self.registry.down_since is None:
