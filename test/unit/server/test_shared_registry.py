@@ -284,3 +284,23 @@ def test_a_replica_behind_a_pruned_change_log_reads_a_snapshot(replicas, dsn):
     assert [entry.service_name for entry in removed] == ['/a']
     assert sorted(entry.service_name for entry in second.entries()) == ['/b', '/c']
     assert second.match((4.2, 0.2, 4.4, 0.4)) == ['/c']
+
+
+def test_a_server_started_on_the_database_has_every_registration(replicas, dsn, clock):
+    first, _ = replicas
+    first.register('/a', square(0, 0), provider='/vs', instance='rosrpc://h:1', algorithms=['sift'])
+    store = PgStore(dsn, clock=clock)
+    store.open()
+    try:
+        restarted = SharedRegistry(store, clock=clock, make_client=Client)
+        restarted.load()
+        entry = restarted.get('/a')
+        assert (entry.provider, entry.instance, entry.algorithms, entry.client.name) == (
+            '/vs',
+            'rosrpc://h:1',
+            frozenset({'sift'}),
+            '/a',
+        )
+        assert restarted.match((0.2, 0.2, 0.4, 0.4), 'sift') == ['/a']
+    finally:
+        store.close()
