@@ -40,6 +40,8 @@ SECTIONS = (
     'latency',
     'throughput',
     'registry',
+    'registry_db',
+    'replicas',
     'vision',
     'planner',
     'fleet',

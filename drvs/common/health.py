@@ -125,6 +125,8 @@ def server_health(
     watches: int = 0,
     left_out: Mapping[str, str] | None = None,
     tracks: int = 0,
+    registry: str = 'memory',
+    registry_problem: str | None = None,
 ) -> Health:
     """The server's health from its registry, its forwarding pool and its refusals.
 
@@ -139,12 +141,16 @@ def server_health(
     :param left_out: vision systems the fusion stage leaves out (their outlines disagree with
         their neighbours'), with why.
     :param tracks: fused tracks now (a value only).
+    :param registry: where the registry lives: ``memory`` or the database (a value only).
+    :param registry_problem: why the registry's database is out of reach, None when it is not.
 
     ======================================================  =======  ===============================
     rule                                                    level    message
     ======================================================  =======  ===============================
     ``pending_forwards >= max_pending``                     ERROR    forward queue full: refusing
                                                                      BUSY (P of M pending)
+    ``registry_problem``                                    ERROR    registry database unreachable
+                                                                     for 12 s (...): serving from ...
     ``registered == 0``                                     WARN     no vision system registered
     ``pending_forwards > 0.8 * max_pending``                WARN     forward queue N% full
                                                                      (P of M pending)
@@ -170,6 +176,8 @@ def server_health(
         problems.append(
             (ERROR, f'forward queue full: refusing BUSY ({pending_forwards} of {max_pending} pending)')
         )
+    if registry_problem:
+        problems.append((ERROR, registry_problem))
     if registered == 0:
         problems.append((WARN, 'no vision system registered'))
     if max_pending > pending_forwards > NEARLY_FULL * max_pending:
@@ -192,6 +200,7 @@ def server_health(
         problems.append((WARN, f'left out of fusion: {reasons}'))
     values = [
         ('registered vision systems', str(registered)),
+        ('registry', f'{registry} (unreachable)' if registry_problem else registry),
         ('pending forwards', str(pending_forwards)),
         ('max pending forwards', str(max_pending)),
         ('rate-limited callers', str(rate_limited_callers)),
