@@ -48,8 +48,18 @@ class PixelObject:
     confidence: float = 0.0
     """How sure the algorithm is of the object, 0 to 1, in a sense each algorithm documents;
     0: unknown (the default, for algorithms that do not say). Sent in DetectedObject.confidence."""
+    footprint: np.ndarray | None = None
+    """Where the object stands on the floor, (N, 2) (x, y) in ``map``, metres, when the algorithm
+    works it out itself (``elevation``): reported as it is instead of ``outline`` put on the floor."""
+    top_height: float = 0.0
+    """The object's top, metres above the floor, when the algorithm measures it; 0: unknown.
+    Sent in DetectedObject.height."""
 
     def __post_init__(self) -> None:
+        top = self.top_height
+        if isinstance(top, bool) or not isinstance(top, int | float | np.floating) or not top >= 0.0:
+            raise ValueError(f'PixelObject: top_height must be a number >= 0, got {top!r}')
+        object.__setattr__(self, 'top_height', float(top))
         confidence = self.confidence
         if isinstance(confidence, bool) or not isinstance(confidence, int | float | np.floating):
             raise ValueError(f'PixelObject: confidence must be a number 0-1, got {confidence!r}')
