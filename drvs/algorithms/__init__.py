@@ -1,7 +1,8 @@
 """The shared algorithm definitions: the ``NAME[:PARAMS]`` strings of DetectObjectBoundary.
 
 Built in: ``colour`` (:mod:`drvs.algorithms.colour`), ``apriltag``
-(:mod:`drvs.algorithms.apriltag`) and ``motion`` (:mod:`drvs.algorithms.motion`).
+(:mod:`drvs.algorithms.apriltag`), ``motion`` (:mod:`drvs.algorithms.motion`) and, for cameras
+with depth, ``elevation`` (:mod:`drvs.algorithms.elevation`).
 Third-party packages add algorithms through the Python entry-point group
 ``drvs.algorithms``: each entry point names a class (instantiated with no
 arguments) or an instance with the members of :class:`Algorithm`;
@@ -123,24 +124,32 @@ def builtin_algorithms(
     epsilon: float = 1.0,
     tag_height: float = 0.0,
     tag_heights: Mapping[str, float] | None = None,
+    depth: bool = True,
 ) -> list[Algorithm]:
     """Fresh instances of the built-in algorithms (``motion`` keeps state: one per camera).
 
     ``tag_height``: the plane tags lie on unless the request says (``h=``);
-    ``tag_heights``: {label: height} known for particular tags (a world file's robot).
+    ``tag_heights``: {label: height} known for particular tags (a world file's robot);
+    ``depth``: the camera has depth, so ``elevation`` can run (False: left out, so the camera
+    does not register it and the server sends it only where it can run).
     """
     from drvs.algorithms.apriltag import AprilTag
+    from drvs.algorithms.elevation import Elevation
     from drvs.algorithms.motion import Motion
 
-    return [
+    algorithms: list[Algorithm] = [
         Colour(min_area, epsilon),
         AprilTag(default_height=tag_height, heights=tag_heights),
         Motion(epsilon=epsilon),
     ]
+    if depth:
+        algorithms.append(Elevation(min_area, epsilon))
+    return algorithms
 
 
 BUILTIN_NAMES = ('apriltag', 'colour', 'motion')
-"""The names :func:`builtin_algorithms` answers to; what an empty ``algorithms`` registration means."""
+"""The built-ins every camera runs; what an empty ``algorithms`` registration means (a camera with
+depth registers ``elevation`` by name too)."""
 
 
 def plugin_algorithms(entry_points: Iterable[EntryPoint] | None = None) -> list[Algorithm]:
@@ -185,10 +194,11 @@ def load_algorithms(
     tag_height: float = 0.0,
     tag_heights: Mapping[str, float] | None = None,
     entry_points: Iterable[EntryPoint] | None = None,
+    depth: bool = True,
 ) -> AlgorithmSet:
     """The built-ins (see :func:`builtin_algorithms`) and every plugin installed; a plugin that
     reuses a taken name is left out."""
-    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights)
+    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth)
     taken = {a.name for a in algorithms}
     for plugin in plugin_algorithms(entry_points):
         if plugin.name in taken:

@@ -98,6 +98,11 @@ class TopicSource:
         else:
             rospy.Subscriber(image_name, image_type, self._on_frame, queue_size=1, buff_size=IMAGE_BUFFER)
 
+    @property
+    def depth(self) -> bool:
+        """Whether frames come with a depth image (``~depth``): algorithms that need one run."""
+        return bool(self.params.depth)
+
     def tag_heights(self) -> dict:
         """None known: a request (``h=H``) or ``~tag_height`` says how high a tag lies."""
         return {}

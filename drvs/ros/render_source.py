@@ -33,6 +33,7 @@ class RenderSource:
     """
 
     name = 'render'
+    depth = True  # the renderer's depth buffer comes with every frame
 
     def __init__(self, params, count):
         self.world = load_world(params.world)

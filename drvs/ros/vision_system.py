@@ -85,7 +85,11 @@ class VisionSystemNode:
         else:
             self.source = TopicSource(params, self._count)
         self.algorithms = load_algorithms(
-            params.min_area, params.epsilon, params.tag_height, self.source.tag_heights()
+            params.min_area,
+            params.epsilon,
+            params.tag_height,
+            self.source.tag_heights(),
+            depth=self.source.depth,
         )
         # Requests: the algorithm strings that parsed lately, parsed again only when new (as parse()).
         self._parsed_algorithms = SimpleNamespace(
