@@ -49,6 +49,8 @@ class RenderSource:
         self.frame_id = optical_frame(self.config.name)
         self._broadcaster = None  # tf, made by start(): static for a fixed camera
         self._fixed_footprint: list | None = None
+        self.noise = self.config.depth_noise  # the depth sensor's imperfections (None: perfect depth)
+        self._rng = self.noise.generator(self.config.name) if self.noise is not None else None
 
     @property
     def moving(self) -> bool:
@@ -103,7 +105,7 @@ class RenderSource:
                 raise FrameUnavailable('the vision system is shutting down')
             if poses:
                 self.scene.apply_poses(poses)
-            frame = self.scene.render(self.camera_at(stamp), stamp)
+            frame = self.scene.render(self.camera_at(stamp), stamp, self.noise, self._rng)
         self._count(renders=1)
         return frame
 

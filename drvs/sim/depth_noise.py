@@ -13,6 +13,7 @@ random generator, so a run is repeatable. Pure numpy and OpenCV.
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,11 @@ class DepthNoise:
     shiny_dropout: float = 0.9
     seed: int | None = None
 
+    def generator(self, camera: str) -> np.random.Generator:
+        """The random generator of camera ``camera``'s frames: seeded with :attr:`seed`, or from the
+        camera's name, so that a run repeats and two cameras differ."""
+        return np.random.default_rng(self.seed if self.seed is not None else zlib.crc32(camera.encode()))
+
     def sigma(self, distance: float | np.ndarray) -> float | np.ndarray:
         """The depth's standard deviation at ``distance`` metres."""
         return self.error * np.square(distance)
@@ -69,10 +75,14 @@ class DepthNoise:
         noisy = clean + rng.standard_normal(depth.shape, dtype=np.float32) * sigma
         holes = ~valid | (noisy <= 0)
         if self.edge_width > 0 and self.edge_dropout > 0:
-            jump = np.zeros(depth.shape, bool)
-            jump[:, 1:] |= np.abs(np.diff(clean, axis=1)) > self.edge_jump
-            jump[1:, :] |= np.abs(np.diff(clean, axis=0)) > self.edge_jump
-            side = 2 * self.edge_width + 1
+            jump = np.zeros(depth.shape, bool)  # both pixels of each pair across an edge
+            across = np.abs(np.diff(clean, axis=1)) > self.edge_jump
+            jump[:, 1:] |= across
+            jump[:, :-1] |= across
+            across = np.abs(np.diff(clean, axis=0)) > self.edge_jump
+            jump[1:, :] |= across
+            jump[:-1, :] |= across
+            side = 2 * self.edge_width - 1
             near_edge = cv2.dilate(jump.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
             holes |= near_edge & (rng.random(depth.shape, dtype=np.float32) < self.edge_dropout)
         if rgb is not None and self.dark_dropout > 0:

@@ -12,6 +12,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from drvs.sim.depth_noise import DepthNoise
+
 KINDS = ('static', 'human')
 ROLES = ('self', 'station', 'obstacle', 'human')
 """The roles of the single form's colour_models, all required."""
@@ -88,6 +90,7 @@ class Body:
     tag: Tag | None = None
     through_obstacles: bool = False
     decoy: bool = False
+    shiny: bool = False
 
     @property
     def moving(self) -> bool:
@@ -107,7 +110,8 @@ class Camera:
     ``map``). ``waypoints`` and ``speed`` move the camera mount (x, y; height kept).
     ``distortion`` is the lens's plumb_bob model (k1, k2, p1, p2, k3), as in a
     CameraInfo's ``D``; empty for an ideal pinhole. The simulation applies it to the
-    frames it publishes (:mod:`drvs.sim.lens`).
+    frames it publishes (:mod:`drvs.sim.lens`). ``depth_noise``: how its depth images fall short
+    of perfect (:mod:`drvs.sim.depth_noise`); None for perfect depth.
     """
 
     name: str
@@ -119,6 +123,7 @@ class Camera:
     waypoints: tuple[tuple[float, float], ...] = ()
     speed: float = 0.0
     distortion: tuple[float, ...] = ()
+    depth_noise: DepthNoise | None = None
 
     @property
     def moving(self) -> bool:

@@ -17,12 +17,14 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
 
 import yaml
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
 from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES
+from drvs.sim.depth_noise import DepthNoise
 from drvs.sim.world import (
     KINDS,
     OWN_ROLES,
@@ -62,7 +64,7 @@ FLOOR_KEYS = ('size', 'colour')
 ROBOT_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'speed', 'tag')
 FLEET_ROBOT_KEYS = (*ROBOT_KEYS, 'station', 'colour_models')
 STATION_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'tag')
-STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy')
+STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy', 'shiny')
 HUMAN_KEYS = (
     *STATIC_KEYS,
     'waypoints',
@@ -82,8 +84,12 @@ CAMERA_KEYS = (
     'waypoints',
     'speed',
     'distortion',
+    'depth_noise',
 )
-_ALL_KEYS = frozenset((*TOP_KEYS, *FLOOR_KEYS, *FLEET_ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS))
+DEPTH_NOISE_KEYS = tuple(field.name for field in fields(DepthNoise))
+_ALL_KEYS = frozenset(
+    (*TOP_KEYS, *FLOOR_KEYS, *FLEET_ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS, *DEPTH_NOISE_KEYS)
+)
 _HUMANS_ONLY = 'applies to humans only: add kind: human to make it walk'
 _TAGS_ONLY = 'only the robot and the station carry a tag'
 _FORMS = 'a world has robot: and station: (one robot) or robots: (a list of robots, each with its station)'
@@ -337,6 +343,7 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
             values[flag] = entry.read(flag, _flag, default=default)
     if role == 'object':
         values['decoy'] = entry.read('decoy', _flag, default=False)
+        values['shiny'] = entry.read('shiny', _flag, default=False)
     else:
         values['tag'] = _tag(entry, size) if 'tag' in data else None
     if entry.broken:
@@ -375,10 +382,58 @@ def _camera(report: Report, data, index: int) -> tuple[str, Camera] | None:
             'distortion',
             f'expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10, got {list(distortion)}',
         )
+    noise = _depth_noise(entry) if 'depth_noise' in data else None
     if entry.broken:
         return None
     width, height = resolution
-    return label, Camera(node_name, position, fov, (width, height), target, up, waypoints, speed, distortion)
+    return label, Camera(
+        node_name, position, fov, (width, height), target, up, waypoints, speed, distortion, noise
+    )
+
+
+def _probability(value) -> float:
+    if not _is_number(value) or not 0 <= value <= 1:
+        raise _expected('a probability 0-1', value)
+    return float(value)
+
+
+def _depth_noise(entry: _Entry) -> DepthNoise | None:
+    """A camera's ``depth_noise``: ``true`` (a Kinect-class sensor's defaults), ``false`` (perfect
+    depth) or a mapping of :class:`DepthNoise`'s fields; problems reported as ``depth_noise.KEY``."""
+    data = entry.data['depth_noise']
+    if isinstance(data, bool):
+        return DepthNoise() if data else None
+    if not isinstance(data, dict):
+        entry.problem(
+            'depth_noise', f'expected true, false or a mapping of {", ".join(DEPTH_NOISE_KEYS)}, got {data!r}'
+        )
+        return None
+    noise = _Entry(entry.report, entry.label, data, DEPTH_NOISE_KEYS, 'depth_noise', prefix='depth_noise.')
+    defaults = DepthNoise()
+    values = {
+        'error': noise.read('error', _bounded, 0.0, 0.1, 'metres at 1 m', default=defaults.error),
+        'edge_jump': noise.read('edge_jump', _bounded, 0.0, 10.0, 'metres', default=defaults.edge_jump),
+        'edge_width': noise.read('edge_width', _count, 0, 20, default=defaults.edge_width),
+        'edge_dropout': noise.read('edge_dropout', _probability, default=defaults.edge_dropout),
+        'dark_level': noise.read('dark_level', _count, 0, 255, default=defaults.dark_level),
+        'dark_dropout': noise.read('dark_dropout', _probability, default=defaults.dark_dropout),
+        'shiny_dropout': noise.read('shiny_dropout', _probability, default=defaults.shiny_dropout),
+        'seed': noise.read('seed', _count, 0, 2**32 - 1, default=None),
+    }
+    entry.broken = entry.broken or noise.broken
+    return None if noise.broken else DepthNoise(**values)
+
+
+def _bounded(value, low: float, high: float, unit: str) -> float:
+    if not _is_number(value) or not low <= value <= high:
+        raise _expected(f'a number {low:g}-{high:g} ({unit})', value)
+    return float(value)
+
+
+def _count(value, low: int, high: int) -> int:
+    if not _is_integer(value, low, high):
+        raise _expected(f'an integer {low}-{high}', value)
+    return value
 
 
 def _models(

@@ -21,7 +21,7 @@ TAGS = yaml.safe_load((REPO / 'worlds/tags.yaml').read_text())
 FLOOR = 'the floor (x 0..7, y 0..5.5)'
 TOUCH = 'move one of them (bodies may touch, not overlap)'
 WALK_THROUGH = 'or add through_obstacles: true if it should walk through'
-STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy)'
+STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny)'
 ROBOT_KEYS = '(keys of the robot: name, position, size, yaw, colour, speed, tag)'
 UNSEEN = 'would register no field of view: move it over the floor or aim its target at it'
 
@@ -216,7 +216,7 @@ def test_a_file_with_several_problems_names_them_all_in_the_order_of_the_file(tm
             {'vision_systems.0.fov': 60},
             [
                 "vision_system 'vs1'.fov: unknown key; did you mean fov_deg? (keys of a vision system: name, "
-                'position, fov_deg, resolution, target, up, waypoints, speed, distortion)'
+                'position, fov_deg, resolution, target, up, waypoints, speed, distortion, depth_noise)'
             ],
         ),
         (
