@@ -40,7 +40,9 @@ class VisionSystemParams(Settings):
         default_text='`render` with `~world`, else `topic`',
     )
     compressed: bool = param(False, '`topic`: subscribe to `image/compressed` instead of `image`')
-    depth: bool = param(False, '`topic`: lift outlines with the aligned depth image `depth`')
+    depth: bool = param(
+        False, '`topic`: lift outlines with the aligned depth image `depth`, and run `elevation` with it'
+    )
     max_range: float = param(
         30.0,
         '`topic`: distance from the camera beyond which the floor is not part of the field of view',
