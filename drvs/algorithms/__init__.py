@@ -1,8 +1,9 @@
 """The shared algorithm definitions: the ``NAME[:PARAMS]`` strings of DetectObjectBoundary.
 
 Built in: ``colour`` (:mod:`drvs.algorithms.colour`), ``apriltag``
-(:mod:`drvs.algorithms.apriltag`), ``motion`` (:mod:`drvs.algorithms.motion`) and, for cameras
-with depth, ``elevation`` (:mod:`drvs.algorithms.elevation`).
+(:mod:`drvs.algorithms.apriltag`), ``motion`` (:mod:`drvs.algorithms.motion`), ``foreground``
+(:mod:`drvs.algorithms.foreground`) and, for cameras with depth, ``elevation``
+(:mod:`drvs.algorithms.elevation`).
 Third-party packages add algorithms through the Python entry-point group
 ``drvs.algorithms``: each entry point names a class (instantiated with no
 arguments) or an instance with the members of :class:`Algorithm`;
@@ -23,6 +24,8 @@ from importlib.metadata import EntryPoint
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from drvs.vision.frame import Frame
 
 from drvs.algorithms.base import (
@@ -30,6 +33,7 @@ from drvs.algorithms.base import (
     NAME_PATTERN,
     Algorithm,
     AlgorithmError,
+    FrameProblem,
     PixelObject,
     outlines_of_mask,
     split_algorithm,
@@ -47,6 +51,7 @@ __all__ = [
     'Algorithm',
     'AlgorithmError',
     'AlgorithmSet',
+    'FrameProblem',
     'Colour',
     'ColourModel',
     'Parsed',
@@ -125,22 +130,26 @@ def builtin_algorithms(
     tag_height: float = 0.0,
     tag_heights: Mapping[str, float] | None = None,
     depth: bool = True,
+    reference: np.ndarray | None = None,
 ) -> list[Algorithm]:
     """Fresh instances of the built-in algorithms (``motion`` keeps state: one per camera).
 
     ``tag_height``: the plane tags lie on unless the request says (``h=``);
     ``tag_heights``: {label: height} known for particular tags (a world file's robot);
     ``depth``: the camera has depth, so ``elevation`` can run (False: left out, so the camera
-    does not register it and the server sends it only where it can run).
+    does not register it and the server sends it only where it can run); ``reference``: the
+    camera's image of its empty floor for ``foreground`` (None: learnt from its first frames).
     """
     from drvs.algorithms.apriltag import AprilTag
     from drvs.algorithms.elevation import Elevation
+    from drvs.algorithms.foreground import Foreground
     from drvs.algorithms.motion import Motion
 
     algorithms: list[Algorithm] = [
         Colour(min_area, epsilon),
         AprilTag(default_height=tag_height, heights=tag_heights),
         Motion(epsilon=epsilon),
+        Foreground(reference, epsilon),
     ]
     if depth:
         algorithms.append(Elevation(min_area, epsilon))
@@ -195,10 +204,11 @@ def load_algorithms(
     tag_heights: Mapping[str, float] | None = None,
     entry_points: Iterable[EntryPoint] | None = None,
     depth: bool = True,
+    reference: np.ndarray | None = None,
 ) -> AlgorithmSet:
     """The built-ins (see :func:`builtin_algorithms`) and every plugin installed; a plugin that
     reuses a taken name is left out."""
-    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth)
+    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth, reference)
     taken = {a.name for a in algorithms}
     for plugin in plugin_algorithms(entry_points):
         if plugin.name in taken:

@@ -26,6 +26,12 @@ class AlgorithmError(ValueError):
     """An algorithm string that cannot be run; the message names the part and the problem."""
 
 
+class FrameProblem(AlgorithmError):
+    """A frame an algorithm cannot work on now (no depth, a depth image that does not fit, no
+    reference yet); the message says what is wrong. The vision system refuses the algorithm's
+    requests with it, and reports it on its diagnostics, until a frame works again."""
+
+
 @dataclass(frozen=True)
 class PixelObject:
     """One object found in an image: its outline in pixel coordinates and its area in pixels.
@@ -83,6 +89,12 @@ class Algorithm:
 
     def observe(self, frame: Frame) -> None:
         """Take one frame of the camera's stream (algorithms with memory)."""
+
+    def frame_problem(self, frame: Frame) -> str | None:
+        """Why ``frame`` cannot be worked on (no depth, no reference yet), naming the algorithm; None
+        when it can. The vision system refuses requests with it before they queue; ``detect``
+        raises :class:`FrameProblem` with it."""
+        return None
 
 
 def split_algorithm(text: object) -> tuple[str, str]:

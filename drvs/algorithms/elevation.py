@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from drvs.algorithms.base import Algorithm, AlgorithmError, PixelObject, outlines_of_mask
+from drvs.algorithms.base import Algorithm, AlgorithmError, FrameProblem, PixelObject, outlines_of_mask
 
 if TYPE_CHECKING:
     from drvs.vision.frame import Frame
@@ -45,7 +45,7 @@ MAX_CACHED_RAYS = 4
 """Cameras whose per-pixel rays are kept (a fixed camera's never change)."""
 
 
-class DepthProblem(AlgorithmError):
+class DepthProblem(FrameProblem):
     """A frame that ``elevation`` cannot use (no depth, or depth that does not fit the image);
     the message says what is wrong."""
 
@@ -135,14 +135,19 @@ class Elevation(Algorithm):
     def parse(self, params: str) -> ElevationParams:
         return parse_elevation(params)
 
+    def frame_problem(self, frame: Frame) -> str | None:
+        """Why ``frame`` cannot be used (:func:`depth_problem`, naming the algorithm), or None."""
+        problem = depth_problem(frame)
+        return f'elevation: {problem}' if problem else None
+
     def detect(self, frame: Frame, params: ElevationParams) -> list[PixelObject]:
         """Objects standing in ``frame``: footprints in ``map`` with their top heights.
 
         :raises DepthProblem: the frame's depth cannot be used (:func:`depth_problem`).
         """
-        problem = depth_problem(frame)
+        problem = self.frame_problem(frame)
         if problem:
-            raise DepthProblem(f'elevation: {problem}')
+            raise DepthProblem(problem)
         heights, raw, depth, rays = self.heights(frame)
         # Raised: above MIN both filtered (not noise) and as measured (not a neighbour's height
         # lent by the filter, which would put the point out along the ray, past the object's edge).

@@ -156,6 +156,13 @@ class TopicSource:
         received = self.feed.newest()
         return None if received is None else self._decode(received)
 
+    def latest(self) -> Frame | None:
+        """The newest frame if it can be decoded now (for a look at it before a request), else None."""
+        try:
+            return self.newest()
+        except FrameUnavailable:
+            return None
+
     def _decode(self, received: _Received) -> Frame:
         with received.lock:
             if received.decoded is None:

@@ -9,6 +9,7 @@ does. Described in docs/nodes/vision_system.md.
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import rospy
 
@@ -118,6 +119,16 @@ class RenderSource:
 
     def newest(self) -> Frame:
         return self.cache.get(rospy.get_time())[0]
+
+    def latest(self) -> Frame | None:
+        """The last frame rendered, if any (no new render for a look before a request)."""
+        return self.cache.last
+
+    def empty_floor(self):
+        """The camera's view of the world without a body in it, (H, W, 3) RGB: ``foreground``'s reference."""
+        empty = replace(self.world, robots=(), objects=())
+        with self._scene_lock, Scene(empty) as scene:
+            return scene.render(self.base_camera).rgb
 
     def footprint(self) -> list | None:
         if not self.config.moving:  # asked 20 times a second: a fixed camera's never changes

@@ -65,6 +65,12 @@ class VisionSystemParams(Settings):
         check=POSITIVE,
     )
     map_frame: str = param('map', '`topic`: the frame outlines and fields of view are given in')
+    reference: str = param(
+        '',
+        "an image file of the camera's empty floor, `foreground`'s reference (`drvs_calibrate --reference` "
+        'writes one)',
+        default_text='none: `render` renders the empty world; `topic` learns it from its first frames',
+    )
     tag_height: float = param(
         0.0,
         'height above the floor of the plane AprilTags lie on, unless the request (`h=H`) or the world says',

@@ -292,6 +292,11 @@ class FrameCache:
         self._ready_at = -math.inf
         self._lock = threading.Lock()
 
+    @property
+    def last(self) -> Frame | None:
+        """The last frame captured, if any (no capture)."""
+        return self._frame
+
     def get(self, arrival: float) -> tuple[Frame, bool]:
         """A frame for a request that arrived at ``arrival``: (frame, whether it was reused)."""
         with self._lock:
