@@ -125,6 +125,7 @@ class Elevation(Algorithm):
 
     name = 'elevation'
     syntax = 'elevation[:MIN_HEIGHT[,MAX_HEIGHT]]'
+    needs_depth = True
 
     def __init__(self, min_area: float = 20.0, epsilon: float = 1.0):
         self.min_area = min_area

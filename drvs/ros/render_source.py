@@ -35,6 +35,8 @@ class RenderSource:
 
     name = 'render'
     depth = True  # the renderer's depth buffer comes with every frame
+    pose_problem = None  # the world file gives the pose
+    depth_problem = None  # the renderer's depth always fits
 
     def __init__(self, params, count):
         self.world = load_world(params.world)

@@ -402,22 +402,29 @@ class VisionSystemNode:
     def _frame_problem(self, algorithm: Parsed, now: float) -> str | None:
         """Why ``algorithm`` cannot work on this camera's frames now: a problem met lately
         (:class:`FrameProblems`), or one the newest frame at hand shows; None if none is known."""
-        problem = self.frame_problems.current(algorithm.name, now)
         check = getattr(algorithm.algorithm, 'frame_problem', None)
-        if problem is None and check is not None:
-            frame = self.source.latest()
-            problem = check(frame) if frame is not None else None
+        frame = self.source.latest() if check is not None else None  # decoding it notes a depth problem
+        problem = self._depth_problem(algorithm) or self.frame_problems.current(algorithm.name, now)
+        if problem is None and frame is not None:
+            problem = check(frame)
         return problem
 
+    def _depth_problem(self, algorithm: Parsed) -> str | None:
+        """Why the camera's depth was left out of its newest frame, for an algorithm that needs it."""
+        if getattr(algorithm.algorithm, 'needs_depth', False) and self.source.depth_problem:
+            return f'{algorithm.name}: {self.source.depth_problem}'
+        return None
+
     def _note_frame_problem(self, algorithm: Parsed, error: FrameProblem, what: str) -> None:
-        self.frame_problems.note(algorithm.name, str(error), rospy.get_time())
+        problem = self._depth_problem(algorithm) or str(error)
+        self.frame_problems.note(algorithm.name, problem, rospy.get_time())
         self.node.log_throttled(
             ('frame problem', algorithm.name),
             rospy.logwarn,
             '%s: %s not served: %s',
             rospy.get_name(),
             what,
-            error,
+            problem,
         )
 
     # -- registration --------------------------------------------------------------------------
@@ -489,7 +496,11 @@ class VisionSystemNode:
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=registration.status,
             registration_error=registration.error,
-            frame_problems=self.frame_problems.messages(rospy.get_time()),
+            frame_problems=[
+                *([self.source.pose_problem] if self.source.pose_problem else []),
+                *([f'depth left out: {self.source.depth_problem}'] if self.source.depth_problem else []),
+                *self.frame_problems.messages(rospy.get_time()),
+            ],
         )
 
     def _count(self, **increments: int) -> None:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.common.status import UNAVAILABLE
+from drvs.common.status import INVALID, UNAVAILABLE
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
@@ -162,6 +162,43 @@ def test_a_tall_box_is_reported_where_it_stands_with_depth_and_displaced_without
     displaced = Polygon(flat_outline)
     assert displaced.hausdorff_distance(Polygon(BOX)) > 0.1
     assert displaced.area > Polygon(BOX).area  # the top is nearer the camera: it looks larger
+
+
+def test_elevation_runs_on_a_depth_topic_and_only_there(graph):
+    """A camera with depth (16UC1 millimetres) registers elevation and reports the box where it
+    stands with its height; a camera without depth does not register it, and says why not."""
+    ros = graph
+    camera = {'box_height': 0.8, 'distortion': [0.0] * 5, 'publish_depth': True, 'depth_encoding': '16UC1'}
+    remap = {**TOPICS, 'depth': '/synthetic_camera/depth'}
+    start(ros, camera=camera, vision={'depth': True}, remap=remap)
+    reply = ask('/drvs/detect_object_boundary', 'elevation:0.1', 'standing')
+    assert (reply.accepted, reply.vision_systems) == (True, 1)
+    outline, callback = outline_of(ros.root / 'callbacks.jsonl', 'standing', ros)
+    assert outline.hausdorff_distance(Polygon(BOX)) <= 0.03
+    assert callback['heights'] == [pytest.approx(0.8, abs=0.01)]
+
+    flat = ros.start_node('nodes/vision_system', name='flat', params={'source': 'topic'}, remap=TOPICS)
+    ros.wait_for_service('/flat/detect_object_boundary', node=flat)
+    reply = ask('/flat/detect_object_boundary', 'elevation', 'no depth')
+    assert (reply.accepted, reply.status) == (False, INVALID)
+    assert reply.message.startswith(
+        "algorithm: unknown NAME 'elevation'; known: apriltag, colour, foreground,"
+    )
+
+
+def test_a_depth_image_of_another_size_refuses_elevation_saying_so_and_colour_goes_on(graph):
+    ros = graph
+    camera = {'box_height': 0.8, 'distortion': [0.0] * 5, 'publish_depth': True, 'depth_size': [320, 240]}
+    start(ros, camera=camera, vision={'depth': True}, remap={**TOPICS, 'depth': '/synthetic_camera/depth'})
+    reply = ask('/cam1/detect_object_boundary', 'elevation', 'misfit')
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message == (
+        'elevation: /synthetic_camera/depth: depth image is 320x240, '
+        'not registered to the 640x480 colour image'
+    )
+    ask('/cam1/detect_object_boundary', BLUE, 'colour')
+    outline, _ = outline_of(ros.root / 'callbacks.jsonl', 'colour', ros)
+    assert outline.intersects(Polygon(BOX))  # without depth the top is met with the floor: displaced
 
 
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
