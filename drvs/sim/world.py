@@ -12,16 +12,15 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from drvs.common.roles import LOCALISATION_ROLES, REQUIRED_ROLES
 from drvs.sim.depth_noise import DepthNoise
 
 KINDS = ('static', 'human')
-ROLES = ('self', 'station', 'obstacle', 'human')
-"""The roles of the single form's colour_models, all required."""
-OWN_ROLES = ('self', 'station')
-"""The roles each robot of ``robots:`` has a model of its own for, in its own ``colour_models``."""
-SHARED_ROLES = ('obstacle', 'human', 'robot')
-"""The roles of a fleet's top-level colour_models; ``robot`` (a model that finds every robot) is
-required with more than one robot, optional otherwise (also in the single form)."""
+ROLES = REQUIRED_ROLES
+"""The roles of the single form's colour_models, all required (:mod:`drvs.common.roles`)."""
+OWN_ROLES = LOCALISATION_ROLES
+"""The roles each robot of ``robots:`` has a model of its own for, in its own ``colour_models``;
+the fleet's top-level ones are :data:`drvs.common.roles.SHARED_ROLES`."""
 
 
 @dataclass(frozen=True)

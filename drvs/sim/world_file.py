@@ -24,12 +24,12 @@ import yaml
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
 from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES
+from drvs.common.roles import SHARED_ROLES, unknown_role
 from drvs.sim.depth_noise import DepthNoise
 from drvs.sim.world import (
     KINDS,
     OWN_ROLES,
     ROLES,
-    SHARED_ROLES,
     Body,
     Camera,
     FleetRobot,
@@ -473,13 +473,15 @@ def _top_models(report: Report, data, fleet: bool | None, robots: int) -> dict[s
     if not fleet:
         missing = f'missing (roles: {", ".join(ROLES)})'
         required = dict.fromkeys(ROLES if fleet is not None else (), missing)
-        return _models(report, data, 'colour_models', required, lambda role: None)
+        return _models(report, data, 'colour_models', required, unknown_role)
     missing = f'missing (roles: {", ".join(SHARED_ROLES)})'
     required = dict.fromkeys(SHARED_ROLES[:2], missing)
     if robots > 1:
         required['robot'] = f'missing: with several robots, a model that finds every robot ({missing[9:-1]})'
     own = "with robots:, each robot has its own: put it in the robot's colour_models"
-    return _models(report, data, 'colour_models', required, lambda role: own if role in OWN_ROLES else None)
+    return _models(
+        report, data, 'colour_models', required, lambda role: own if role in OWN_ROLES else unknown_role(role)
+    )
 
 
 def _fleet_robot(report: Report, data, index: int):
@@ -506,7 +508,7 @@ def _fleet_robot(report: Report, data, index: int):
             data['colour_models'],
             f'{label}.colour_models',
             dict.fromkeys(OWN_ROLES, missing),
-            lambda role: None if role in OWN_ROLES else shared,
+            lambda role: None if role in OWN_ROLES else unknown_role(role) or shared,
         )
     return label, robot, station, models
 

@@ -401,3 +401,27 @@ def test_check_world_without_files_prints_its_usage_and_exits_2():
     assert 'Traceback' not in result.stderr
     result = check_world('--help')
     assert result.returncode == 0 and result.stdout.startswith('usage: drvs_check_world')
+
+
+def test_check_world_refuses_a_role_the_robot_never_asks_for_with_the_nearest_one(tmp_path):
+    """A typo beside the right role (``humna:`` and ``human:``) must not pass as ok."""
+    typo = tmp_path / 'typo.yaml'
+    typo.write_text(yaml.safe_dump(edited(OBSTACLES, **{'colour_models.humna': 'colour:150,0,0,255,80,80'})))
+    result = check_world(typo)
+    assert (result.returncode, result.stdout) == (
+        2,
+        f'{typo}: colour_models.humna: unknown role; did you mean human? '
+        '(roles: self, station, obstacle, human, robot)\n',
+    )
+
+
+def test_a_fleets_roles_are_checked_against_the_robots_too(tmp_path):
+    fleet = yaml.safe_load((REPO / 'worlds/crossing.yaml').read_text())
+    fleet['colour_models']['obstacel'] = fleet['colour_models']['obstacle']
+    first = fleet['robots'][0]
+    first['colour_models']['slef'] = first['colour_models']['self']
+    roles = '(roles: self, station, obstacle, human, robot)'
+    assert sorted(problems_of(tmp_path, fleet)) == [
+        f'colour_models.obstacel: unknown role; did you mean obstacle? {roles}',
+        f"robots {first['name']!r}.colour_models.slef: unknown role; did you mean self? {roles}",
+    ]
