@@ -169,7 +169,9 @@ class Elevation(Algorithm):
     def heights(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(height above the floor median-filtered, height as measured, depth, ray) of every pixel.
 
-        A hole (0, NaN, infinite depth) has height 0 and depth 0: it reads as floor, never raised.
+        A hole (0, NaN, infinite depth) has height 0 and depth 0, so it is never raised itself; for
+        the filter it lends its neighbours the highest valid height within :data:`MEDIAN` / 2 of
+        it, so that a sensor's holes along an object's edge do not eat into the object.
         A ray is the pixel's viewing direction in ``map`` scaled to 1 along the optical axis, so a
         point is ``eye + ray * depth``.
         """
@@ -182,7 +184,12 @@ class Elevation(Algorithm):
         depth = np.where(valid, depth, 0).astype(np.float32)
         eye_z = np.float32(frame.camera.eye[2])
         raw = np.where(valid, eye_z + rays[..., 2] * depth, 0).astype(np.float32)
-        return cv2.medianBlur(raw, MEDIAN), raw, depth, rays
+        lent = raw
+        if not valid.all():  # for the filter only, a hole takes the highest valid height next to it
+            kernel = np.ones((MEDIAN, MEDIAN), np.uint8)
+            lent = np.where(valid, raw, cv2.dilate(np.where(valid, raw, -np.inf).astype(np.float32), kernel))
+            lent = np.where(np.isfinite(lent), lent, 0).astype(np.float32)
+        return cv2.medianBlur(lent, MEDIAN), raw, depth, rays
 
     def _rays_of(self, frame: Frame) -> np.ndarray:
         """(H, W, 3) float32 rays of the frame's pixel centres (kept for :data:`MAX_CACHED_RAYS` poses)."""

@@ -26,13 +26,13 @@ NOISE = DepthNoise(error=0.0015)
 # name, box, noisy, least IoU with the true footprint, largest height error (m)
 Case = tuple[str, Box, bool, float, float]
 # At 320x240 a pixel is 1.4 cm of floor: a clean footprint is within about a pixel all round; with
-# noise the sensor's holes along depth edges (2 pixels) eat into it (docs/design.md, elevation).
+# noise the sensor's holes along depth edges (2 pixels) cost about another pixel.
 CASES: list[Case] = [
     ('below, clean', CENTRE, False, 0.95, 0.005),
     ('side, clean', SIDE, False, 0.93, 0.005),
     ('pallet, clean', PALLET, False, 0.92, 0.005),
-    ('below, noisy', CENTRE, True, 0.75, 0.02),
-    ('side, noisy', SIDE, True, 0.82, 0.02),
+    ('below, noisy', CENTRE, True, 0.85, 0.02),
+    ('side, noisy', SIDE, True, 0.90, 0.02),
     ('pallet, noisy', PALLET, True, 0.90, 0.02),
 ]
 
