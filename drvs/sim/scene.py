@@ -96,6 +96,8 @@ class Scene:
         self.client = pybullet.connect(pybullet.DIRECT)
         self.bodies: dict[str, int] = {}
         self.sizes: dict[str, tuple[float, float, float]] = {}
+        self.bottoms: dict[str, float] = {}
+        """How high above the floor each body's underside is (0 for all but a hanging object)."""
         self.tags: dict[str, int] = {}
         """The tag quad on top of each body that carries one, by body name."""
         self.shiny: list[int] = []
@@ -132,6 +134,7 @@ class Scene:
             0, collision, visual, [0, 0, half[2]], physicsClientId=self.client
         )
         self.sizes[body.name] = body.size
+        self.bottoms[body.name] = body.bottom
         if body.shiny:
             self.shiny.append(self.bodies[body.name])
         if body.tag is not None:
@@ -159,12 +162,13 @@ class Scene:
 
     # -- poses ---------------------------------------------------------------------------------
     def set_pose(self, name: str, x: float, y: float, yaw: float) -> None:
-        """Place body ``name`` with its footprint centred at (x, y), turned by ``yaw`` radians."""
+        """Place body ``name`` with its footprint centred at (x, y), turned by ``yaw`` radians (at
+        its own height: on the floor, or ``bottom`` above it)."""
         if self._poses.get(name) == (x, y, yaw):
             return
         pybullet.resetBasePositionAndOrientation(
             self.bodies[name],
-            [x, y, self.sizes[name][2] / 2.0],
+            [x, y, self.bottoms[name] + self.sizes[name][2] / 2.0],
             _quaternion(yaw),
             physicsClientId=self.client,
         )

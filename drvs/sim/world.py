@@ -74,7 +74,8 @@ class Tag:
 @dataclass(frozen=True)
 class Body:
     """A box standing on the floor: footprint centre, size [x, y, z] in metres, yaw in radians;
-    the robot and the station may carry a :class:`Tag` on top."""
+    the robot and the station may carry a :class:`Tag` on top. A static object may hang
+    ``bottom`` metres above the floor (a shelf): it spans heights bottom to bottom + size z."""
 
     name: str
     position: tuple[float, float]
@@ -90,6 +91,12 @@ class Body:
     through_obstacles: bool = False
     decoy: bool = False
     shiny: bool = False
+    bottom: float = 0.0
+
+    @property
+    def top(self) -> float:
+        """Metres above the floor of its top."""
+        return self.bottom + self.size[2]
 
     @property
     def moving(self) -> bool:

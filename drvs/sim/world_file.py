@@ -64,9 +64,10 @@ FLOOR_KEYS = ('size', 'colour')
 ROBOT_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'speed', 'tag')
 FLEET_ROBOT_KEYS = (*ROBOT_KEYS, 'station', 'colour_models')
 STATION_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'tag')
-STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy', 'shiny')
+OBJECT_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy', 'shiny')
+STATIC_KEYS = (*OBJECT_KEYS, 'bottom')
 HUMAN_KEYS = (
-    *STATIC_KEYS,
+    *OBJECT_KEYS,
     'waypoints',
     'speed',
     'loop',
@@ -88,10 +89,20 @@ CAMERA_KEYS = (
 )
 DEPTH_NOISE_KEYS = tuple(field.name for field in fields(DepthNoise))
 _ALL_KEYS = frozenset(
-    (*TOP_KEYS, *FLOOR_KEYS, *FLEET_ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS, *DEPTH_NOISE_KEYS)
+    (
+        *TOP_KEYS,
+        *FLOOR_KEYS,
+        *FLEET_ROBOT_KEYS,
+        *HUMAN_KEYS,
+        *STATIC_KEYS,
+        *TAG_KEYS,
+        *CAMERA_KEYS,
+        *DEPTH_NOISE_KEYS,
+    )
 )
 _HUMANS_ONLY = 'applies to humans only: add kind: human to make it walk'
 _TAGS_ONLY = 'only the robot and the station carry a tag'
+_STATICS_ONLY = 'does not apply: only a static object may hang above the floor'
 _FORMS = 'a world has robot: and station: (one robot) or robots: (a list of robots, each with its station)'
 
 
@@ -291,9 +302,9 @@ _BODY_KEYS = {
     'static': (
         STATIC_KEYS,
         'a static object',
-        {**dict.fromkeys(HUMAN_KEYS[len(STATIC_KEYS) :], _HUMANS_ONLY), 'tag': _TAGS_ONLY},
+        {**dict.fromkeys(HUMAN_KEYS[len(OBJECT_KEYS) :], _HUMANS_ONLY), 'tag': _TAGS_ONLY},
     ),
-    'human': (HUMAN_KEYS, 'a human', {'tag': _TAGS_ONLY}),
+    'human': (HUMAN_KEYS, 'a human', {'tag': _TAGS_ONLY, 'bottom': _STATICS_ONLY}),
 }
 
 
@@ -320,7 +331,7 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
     label = report.entry(_label(data, where, role, fleet))
     keys: tuple[str, ...]
     if role == 'object' and kind not in KINDS:  # reported below; any object key may apply
-        keys, what, hints = HUMAN_KEYS, 'an object', {'tag': _TAGS_ONLY}
+        keys, what, hints = (*HUMAN_KEYS, 'bottom'), 'an object', {'tag': _TAGS_ONLY}
     else:
         keys, what, hints = _BODY_KEYS['fleet robot' if fleet and kind == 'robot' else kind]
     entry = _Entry(report, label, data, keys, what, hints)
@@ -344,6 +355,8 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
     if role == 'object':
         values['decoy'] = entry.read('decoy', _flag, default=False)
         values['shiny'] = entry.read('shiny', _flag, default=False)
+        if kind != 'human':
+            values['bottom'] = entry.read('bottom', _bounded, 0.0, 100.0, 'metres', default=0.0)
     else:
         values['tag'] = _tag(entry, size) if 'tag' in data else None
     if entry.broken:

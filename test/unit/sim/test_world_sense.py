@@ -21,7 +21,7 @@ TAGS = yaml.safe_load((REPO / 'worlds/tags.yaml').read_text())
 FLOOR = 'the floor (x 0..7, y 0..5.5)'
 TOUCH = 'move one of them (bodies may touch, not overlap)'
 WALK_THROUGH = 'or add through_obstacles: true if it should walk through'
-STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny)'
+STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny, bottom)'
 ROBOT_KEYS = '(keys of the robot: name, position, size, yaw, colour, speed, tag)'
 UNSEEN = 'would register no field of view: move it over the floor or aim its target at it'
 
