@@ -238,6 +238,9 @@ def test_a_topic_vision_system_without_a_pose_on_tf_says_what_is_missing(graph):
         on_timeout=cam1.describe,
     )
     assert cam1.running() and not registered()
+    reply = ask('/cam1/detect_object_boundary', BLUE, 'lost')  # asked directly: refused, saying why
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message.startswith('no calibrated pose: no transform world <- nowhere at '), reply.message
 
 
 def test_source_render_without_a_world_is_refused_with_the_fix(ros):
