@@ -226,10 +226,11 @@ def footprint_from_outline(frame: Frame, outline: np.ndarray) -> np.ndarray | No
     edge nearest the point below the camera (its lowest edge in the image, where it meets the floor),
     stretched away from that point by its unknown height. The estimate keeps the part of it within
     its width (across the direction from the camera) of that nearest edge: a footprint as deep as
-    it is wide. None when the outline does not meet the floor.
+    it is wide. An object whose shadow holds the point below the camera shows no side: its shadow
+    is all there is. None when the outline does not meet the floor.
     """
     from shapely.affinity import rotate, translate
-    from shapely.geometry import Polygon, box
+    from shapely.geometry import Point, Polygon, box
 
     points = frame.camera.pixel_to_floor(frame.to_camera(np.asarray(outline, float)))
     points = points[np.all(np.isfinite(points), axis=1)]
@@ -240,7 +241,7 @@ def footprint_from_outline(frame: Frame, outline: np.ndarray) -> np.ndarray | No
         return None
     eye = np.asarray(frame.camera.eye[:2], float)
     away = np.asarray(shadow.centroid.coords[0]) - eye
-    if np.hypot(*away) < 1e-6:
+    if np.hypot(*away) < 1e-6 or shadow.contains(Point(eye)):  # right below the camera: no side shows
         return np.asarray(shadow.exterior.coords)[:-1]
     angle = math.degrees(math.atan2(away[1], away[0]))
     # In a frame turned so that "away from the camera" is +x, with the camera at the origin.

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.common.status import INVALID, UNAVAILABLE
+from drvs.common.status import INVALID, UNAVAILABLE, UNSUPPORTED
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
@@ -199,6 +199,23 @@ def test_a_depth_image_of_another_size_refuses_elevation_saying_so_and_colour_go
     ask('/cam1/detect_object_boundary', BLUE, 'colour')
     outline, _ = outline_of(ros.root / 'callbacks.jsonl', 'colour', ros)
     assert outline.intersects(Polygon(BOX))  # without depth the top is met with the floor: displaced
+
+
+def test_foreground_finds_the_box_against_a_reference_file_of_the_empty_floor(graph):
+    """A camera without depth: ``~reference`` (as drvs_calibrate --reference writes it) is the empty
+    floor; the flat box below the camera is where it lies, and elevation is not offered."""
+    import cv2
+
+    ros = graph
+    reference = ros.root / 'cam1_floor.png'
+    cv2.imwrite(str(reference), np.full((480, 640, 3), 230, np.uint8))  # the synthetic camera's floor
+    start(ros, camera={'distortion': [0.0] * 5}, vision={'reference': reference})
+    reply = ask('/drvs/detect_object_boundary', 'foreground', 'anything')
+    assert (reply.accepted, reply.vision_systems) == (True, 1)
+    outline, _ = outline_of(ros.root / 'callbacks.jsonl', 'anything', ros)
+    assert outline.hausdorff_distance(Polygon(BOX)) <= 0.03
+    reply = ask('/drvs/detect_object_boundary', 'elevation', 'standing')
+    assert (reply.accepted, reply.status) == (False, UNSUPPORTED)
 
 
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
