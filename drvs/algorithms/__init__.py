@@ -131,6 +131,7 @@ def builtin_algorithms(
     tag_heights: Mapping[str, float] | None = None,
     depth: bool = True,
     reference: np.ndarray | None = None,
+    fixed: bool = True,
 ) -> list[Algorithm]:
     """Fresh instances of the built-in algorithms (``motion`` keeps state: one per camera).
 
@@ -138,7 +139,8 @@ def builtin_algorithms(
     ``tag_heights``: {label: height} known for particular tags (a world file's robot);
     ``depth``: the camera has depth, so ``elevation`` can run (False: left out, so the camera
     does not register it and the server sends it only where it can run); ``reference``: the
-    camera's image of its empty floor for ``foreground`` (None: learnt from its first frames).
+    camera's image of its empty floor for ``foreground`` (None: learnt from its first frames);
+    ``fixed``: the camera stands still, so ``foreground`` can run (left out on a moving mount).
     """
     from drvs.algorithms.apriltag import AprilTag
     from drvs.algorithms.elevation import Elevation
@@ -149,8 +151,9 @@ def builtin_algorithms(
         Colour(min_area, epsilon),
         AprilTag(default_height=tag_height, heights=tag_heights),
         Motion(epsilon=epsilon),
-        Foreground(reference, epsilon),
     ]
+    if fixed:
+        algorithms.append(Foreground(reference, epsilon))
     if depth:
         algorithms.append(Elevation(min_area, epsilon))
     return algorithms
@@ -205,10 +208,11 @@ def load_algorithms(
     entry_points: Iterable[EntryPoint] | None = None,
     depth: bool = True,
     reference: np.ndarray | None = None,
+    fixed: bool = True,
 ) -> AlgorithmSet:
     """The built-ins (see :func:`builtin_algorithms`) and every plugin installed; a plugin that
     reuses a taken name is left out."""
-    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth, reference)
+    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth, reference, fixed)
     taken = {a.name for a in algorithms}
     for plugin in plugin_algorithms(entry_points):
         if plugin.name in taken:

@@ -100,6 +100,7 @@ class VisionSystemNode:
             self.source.tag_heights(),
             depth=self.source.depth,
             reference=reference,
+            fixed=not self.source.moving,
         )
         self.frame_problems = FrameProblems()  # why an algorithm cannot use the frames now
         # Requests: the algorithm strings that parsed lately, parsed again only when new (as parse()).
