@@ -245,7 +245,8 @@ class Elevation(Algorithm):
             if params.max_height is not None and top > params.max_height:
                 continue
             region = np.where(labels == label, 255, 0).astype(np.uint8)
-            for part in outlines_of_mask(region, 1.0, self.epsilon, evidence=occupied & region):
+            # A part smaller than the closing, joined to the rest at a corner, is a spur of its edge.
+            for part in outlines_of_mask(region, CLOSING * CLOSING, self.epsilon, evidence=occupied & region):
                 footprint = _inset(
                     np.c_[x0 + part.outline[:, 0] * cell, y0 + part.outline[:, 1] * cell], cell
                 )
@@ -269,6 +270,8 @@ def _inset(footprint: np.ndarray, cell: float) -> np.ndarray | None:
     from shapely.geometry import Polygon
 
     shape = Polygon(footprint).buffer(-cell / 2.0, join_style=2, mitre_limit=2.0)
+    if shape.geom_type == 'MultiPolygon':  # a ragged edge's one-cell spurs come off: the body stays
+        shape = max(shape.geoms, key=lambda part: part.area)
     if shape.is_empty or shape.geom_type != 'Polygon':
         return None
     return np.asarray(shape.exterior.coords)[:-1]

@@ -173,3 +173,27 @@ def test_unusable_depth_is_refused_with_what_is_wrong(change, message):
     with pytest.raises(DepthProblem) as error:
         Elevation().detect(frame, ElevationParams())
     assert str(error.value) == message
+
+
+@pytest.mark.parametrize('seed', [1, 2, 3])
+def test_with_a_noisier_sensor_each_box_is_still_one_object(seed):
+    """Twice the error and wider holes: even the 5 cm pallet (below 2 sigma at 3 m per pixel) is
+    one object."""
+    noise = DepthNoise(error=0.003, edge_width=3)
+    objects = found_on_floor(noisy(depth_frame(CAMERA, BOXES), seed=seed, noise=noise))
+    assert len(objects) == len(BOXES)
+    for box in BOXES:
+        found, truth = best_match(objects, box)
+        assert found.shape.intersection(truth).area / found.shape.union(truth).area >= 0.7, box
+        assert found.height == pytest.approx(box.top, abs=0.03)
+
+
+def test_a_ragged_edge_moved_in_keeps_the_body_not_nothing():
+    """Moving a region's outline in by half a cell cuts a one-cell spur off its ragged edge: the body
+    is what stays (it used to be dropped whole, losing a noisy pallet)."""
+    from drvs.algorithms.elevation import _inset
+
+    neck = [(5.5, 10), (5.5, 10.6), (7, 10.6), (7, 13.6), (4, 13.6), (4, 10.6), (5, 10.6), (5, 10)]
+    body = [(0, 0), (10, 0), (10, 10), *neck, (0, 10)]  # a 3 x 3 blob on a half-cell neck
+    inset = Polygon(_inset(np.asarray(body, float), 1.0))
+    assert inset.area == pytest.approx(81.0)  # the 10 x 10 body, 0.5 in all round, not the blob
