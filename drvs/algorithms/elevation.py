@@ -130,8 +130,9 @@ class Elevation(Algorithm):
     def __init__(self, min_area: float = 20.0, epsilon: float = 1.0):
         self.min_area = min_area
         self.epsilon = epsilon
-        self._rays: dict[tuple, np.ndarray] = {}
-        self._lock = threading.Lock()  # guards _rays
+        self._rays: dict[tuple, np.ndarray] = {}  # per optics and pose
+        self._grids: dict[tuple, np.ndarray] = {}  # per optics: see _rays_of
+        self._lock = threading.Lock()  # guards _rays and _grids
 
     def parse(self, params: str) -> ElevationParams:
         return parse_elevation(params)
@@ -192,24 +193,35 @@ class Elevation(Algorithm):
         return cv2.medianBlur(lent, MEDIAN), raw, depth, rays
 
     def _rays_of(self, frame: Frame) -> np.ndarray:
-        """(H, W, 3) float32 rays of the frame's pixel centres (kept for :data:`MAX_CACHED_RAYS` poses)."""
+        """(H, W, 3) float32 rays of the frame's pixel centres.
+
+        A ray is ``e3 + p * e1 + q * e2``: (p, q) per pixel depend on the optics alone (for a lens,
+        undistorting every pixel: long), kept per camera; the basis (e1, e2, e3) on its pose.
+        The rays of the last :data:`MAX_CACHED_RAYS` poses are kept too.
+        """
         camera = frame.camera
         height, width = frame.depth.shape if frame.depth is not None else frame.rgb.shape[:2]
-        key = (_camera_key(camera), frame.sample_offset, height, width)
+        optics, basis = _optics_and_basis(camera)
+        key = (optics, frame.sample_offset, height, width)
+        posed = (key, np.asarray(basis).tobytes())
         with self._lock:
-            rays = self._rays.get(key)
+            rays = self._rays.get(posed)
+            grid = self._grids.get(key)
         if rays is not None:
             return rays
-        rows, cols = np.mgrid[0:height, 0:width]
-        pixels = frame.to_camera(np.c_[cols.ravel() + 0.5, rows.ravel() + 0.5])
-        eye = np.asarray(camera.eye, float)
-        rays = (camera.pixel_to_point(pixels, np.ones(len(pixels))) - eye).astype(np.float32)
-        rays = rays.reshape(height, width, 3)
+        if grid is None:
+            rows, cols = np.mgrid[0:height, 0:width]
+            pixels = frame.to_camera(np.c_[cols.ravel() + 0.5, rows.ravel() + 0.5])
+            grid = _grid(camera, pixels).astype(np.float32).reshape(height, width, 2)
+        e1, e2, e3 = (np.asarray(axis, np.float32) for axis in basis)
+        rays = e3 + grid[..., :1] * e1 + grid[..., 1:] * e2
         rays.setflags(write=False)
         with self._lock:
-            if len(self._rays) >= MAX_CACHED_RAYS:
-                self._rays.pop(next(iter(self._rays)))
-            self._rays[key] = rays
+            for cache in (self._rays, self._grids):
+                if len(cache) >= MAX_CACHED_RAYS:
+                    cache.pop(next(iter(cache)))
+            self._rays[posed] = rays
+            self._grids[key] = grid
         return rays
 
     # -- the regions -------------------------------------------------------------------------------
@@ -277,18 +289,24 @@ def _inset(footprint: np.ndarray, cell: float) -> np.ndarray | None:
     return np.asarray(shape.exterior.coords)[:-1]
 
 
-def _camera_key(camera: Any) -> tuple:
-    """What a camera's per-pixel rays depend on: its optics and its pose."""
-    if hasattr(camera, 'K'):  # drvs.vision.optics.CameraModel (equality is identity)
-        return (
-            camera.K.tobytes(),
-            camera.D,
-            camera.width,
-            camera.height,
-            camera.rotation.tobytes(),
-            camera.translation.tobytes(),
-        )
-    return (camera,)  # drvs.vision.camera.PinholeCamera: a frozen dataclass of numbers
+def _optics_and_basis(camera: Any) -> tuple[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """What a camera's per-pixel (p, q) depend on, and its pose's basis (e1, e2, e3) in ``map``."""
+    if hasattr(camera, 'K'):  # drvs.vision.optics.CameraModel: normalized (x, y) in its optical frame
+        rotation = np.asarray(camera.rotation, float)
+        optics = (camera.K.tobytes(), camera.D, camera.width, camera.height)
+        return optics, (rotation[:, 0], rotation[:, 1], rotation[:, 2])
+    right, up, forward = camera.axes()  # drvs.vision.camera.PinholeCamera
+    return (camera.width, camera.height, camera.fov_deg), (right, up, forward)
+
+
+def _grid(camera: Any, pixels: np.ndarray) -> np.ndarray:
+    """(p, q) of each pixel position, (N, 2): see :func:`_optics_and_basis`."""
+    if hasattr(camera, 'K'):
+        return np.asarray(camera.undistort(pixels), float)
+    t = camera.tan_half_fov
+    x_ndc = 2.0 * pixels[:, 0] / camera.width - 1.0
+    y_ndc = 1.0 - 2.0 * pixels[:, 1] / camera.height
+    return np.c_[x_ndc * t * camera.aspect, y_ndc * t]
 
 
 def _pixel_angle(rays: np.ndarray) -> float:

@@ -197,3 +197,17 @@ def test_a_ragged_edge_moved_in_keeps_the_body_not_nothing():
     body = [(0, 0), (10, 0), (10, 10), *neck, (0, 10)]  # a 3 x 3 blob on a half-cell neck
     inset = Polygon(_inset(np.asarray(body, float), 1.0))
     assert inset.area == pytest.approx(81.0)  # the 10 x 10 body, 0.5 in all round, not the blob
+
+
+def test_the_rays_kept_per_lens_follow_the_camera_as_it_moves():
+    """Undistorting every pixel is done once per lens; each pose only turns the result."""
+    lens = CameraModel.from_pinhole(CAMERA, distortion=(-0.2, 0.05, 0.001, -0.001, 0.0))
+    frame = depth_frame(CAMERA, [])
+    elevation = Elevation()
+    for turned, offset in ((CAMERA, (0.0, 0.0)), (replace(CAMERA, target=(2.3, 1.8, 0.0)), (-0.5, 0.5))):
+        for camera in (turned, CameraModel.from_pinhole(turned, distortion=lens.D)):
+            shown = replace(frame, camera=camera, sample_offset=offset)
+            rays = elevation._rays_of(shown)
+            pixels = shown.to_camera([(0.5, 0.5), (200.5, 100.5), (319.5, 239.5)])
+            expected = camera.pixel_to_point(pixels, np.ones(3)) - np.asarray(camera.eye)
+            assert rays[[0, 100, 239], [0, 200, 319]] == pytest.approx(expected, abs=1e-5)
