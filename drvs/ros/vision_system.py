@@ -20,7 +20,7 @@ import numpy as np
 import rospy
 from sensor_msgs.msg import Image
 
-from drvs.algorithms import AlgorithmError, FrameProblem, Parsed, load_algorithms
+from drvs.algorithms import Algorithm, AlgorithmError, FrameProblem, Parsed, load_algorithms
 from drvs.algorithms.foreground import read_reference
 from drvs.common.counters import PeriodCounts
 from drvs.common.health import Health, vision_system_health
@@ -404,6 +404,8 @@ class VisionSystemNode:
         """Why ``algorithm`` cannot work on this camera's frames now: a problem met lately
         (:class:`FrameProblems`), or one the newest frame at hand shows; None if none is known."""
         check = getattr(algorithm.algorithm, 'frame_problem', None)
+        if getattr(type(algorithm.algorithm), 'frame_problem', None) is Algorithm.frame_problem:
+            check = None  # it says of no frame that it cannot work on it: no frame to look at
         frame = self.source.latest() if check is not None else None  # decoding it notes a depth problem
         problem = self._depth_problem(algorithm) or self.frame_problems.current(algorithm.name, now)
         if problem is None and frame is not None:

@@ -256,3 +256,21 @@ def test_elevation_without_usable_depth_is_refused_saying_why_and_reported_until
     (request,) = clients.requests
     assert [round(o.height, 2) for o in request.objects] == [0.5]
     assert 'elevation' not in node.health().message
+
+
+def test_a_colour_request_does_not_look_at_a_frame_before_it_is_queued(clock):
+    """Only algorithms that can refuse a frame (elevation, foreground) have one decoded at once."""
+    from drvs.msg import BoundingBox
+
+    node = vision_system(clock)
+    node.source.unavailable = lambda: None
+    looked = []
+    node.source.latest = lambda: looked.append(1)
+    request = DetectObjectBoundaryRequest(
+        BLUE, BoundingBox(0.0, 0.0, 1.0, 1.0), '/robot/callback', 'c1', False
+    )
+    assert node._handle_detect(request).accepted
+    assert looked == []
+    request.algorithm = 'foreground'
+    node._handle_detect(request)
+    assert looked == [1]
