@@ -401,16 +401,19 @@ class VisionSystemNode:
                 self.watches.callback_failed(terms)
 
     def _frame_problem(self, algorithm: Parsed, now: float) -> str | None:
-        """Why ``algorithm`` cannot work on this camera's frames now: a problem met lately
-        (:class:`FrameProblems`), or one the newest frame at hand shows; None if none is known."""
+        """Why ``algorithm`` cannot work on this camera's frames now: what the newest frame at hand
+        shows, or without one a problem met lately (:class:`FrameProblems`); None if none is known."""
         check = getattr(algorithm.algorithm, 'frame_problem', None)
         if getattr(type(algorithm.algorithm), 'frame_problem', None) is Algorithm.frame_problem:
             check = None  # it says of no frame that it cannot work on it: no frame to look at
         frame = self.source.latest() if check is not None else None  # decoding it notes a depth problem
-        problem = self._depth_problem(algorithm) or self.frame_problems.current(algorithm.name, now)
-        if problem is None and frame is not None:
+        problem = self._depth_problem(algorithm)
+        if problem is None and frame is not None:  # the newest frame says it all
             problem = check(frame)
-        return problem
+            if problem is None:
+                self.frame_problems.clear(algorithm.name)
+            return problem
+        return problem or self.frame_problems.current(algorithm.name, now)
 
     def _depth_problem(self, algorithm: Parsed) -> str | None:
         """Why the camera's depth was left out of its newest frame, for an algorithm that needs it."""
