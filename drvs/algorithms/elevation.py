@@ -181,7 +181,9 @@ class Elevation(Algorithm):
         assert frame.depth is not None  # detect() checked
         rays = self._rays_of(frame)
         depth = np.asarray(frame.depth, np.float32)
-        valid = np.isfinite(depth) & (depth > 0)
+        valid = (
+            np.isfinite(depth) & (depth > 0) & np.isfinite(rays[..., 2])
+        )  # a lens may not invert everywhere
         depth = np.where(valid, depth, 0).astype(np.float32)
         eye_z = np.float32(frame.camera.eye[2])
         raw = np.where(valid, eye_z + rays[..., 2] * depth, 0).astype(np.float32)
