@@ -74,7 +74,6 @@ class Foreground(Algorithm):
 
     name = 'foreground'
     syntax = 'foreground[:MIN_AREA]'
-    streaming = True
 
     def __init__(self, reference: np.ndarray | None = None, epsilon: float = 1.0):
         self.epsilon = epsilon
@@ -83,6 +82,12 @@ class Foreground(Algorithm):
         self._reference: np.ndarray | None = None
         if reference is not None:
             self.set_reference(reference)
+
+    @property
+    def streaming(self) -> bool:  # type: ignore[override]
+        """Whether it needs the camera's stream: only while it learns its reference. With one, what
+        it finds depends on the frame alone, so requests sharing a frame share its objects."""
+        return self._reference is None
 
     @property
     def reference(self) -> np.ndarray | None:
