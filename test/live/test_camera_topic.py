@@ -218,6 +218,21 @@ def test_foreground_finds_the_box_against_a_reference_file_of_the_empty_floor(gr
     assert (reply.accepted, reply.status) == (False, UNSUPPORTED)
 
 
+def test_foreground_without_a_reference_learns_one_while_asked_and_says_so_meanwhile(graph):
+    ros = graph
+    start(ros)
+    reply = ask('/cam1/detect_object_boundary', 'foreground', 'early')
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message.startswith('foreground: learning the reference of the empty floor ('), reply.message
+    # Asked again, it learns from the stream (~motion_rate 5 Hz, 5 frames), then serves.
+    wait_for(
+        lambda: ask('/cam1/detect_object_boundary', 'foreground', 'later').accepted,
+        30,
+        'foreground to learn its reference',
+        on_timeout=ros.describe,
+    )
+
+
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
     ros = graph
     cam1, output, _ = start(ros, vision={'stale_after': 1.0})
