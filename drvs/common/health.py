@@ -15,7 +15,7 @@ how rules combine: docs/design.md.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from drvs.common import status as drvs_status
@@ -227,6 +227,7 @@ def vision_system_health(
     registration_status: str = '',
     registration_error: str = '',
     watches: int = 0,
+    frame_problems: Sequence[str] = (),
 ) -> Health:
     """A vision system's health from its registration, its camera feed, its queue and its callbacks.
 
@@ -245,6 +246,9 @@ def vision_system_health(
     :param registration_error: why the last registration failed (the refusal's
         message, or why the server did not answer); empty when it succeeded.
     :param watches: standing requests (watches) it serves now; a value, no rule.
+    :param frame_problems: why algorithms cannot work on the camera's frames now (an
+        ``elevation`` without usable depth, a ``foreground`` without its reference), one
+        message each, naming the algorithm.
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -262,6 +266,8 @@ def vision_system_health(
                                                                      (L of S)
     ``callback_failures_recent > 0``                        WARN     2 of 5 callbacks failed in
                                                                      the last period
+    each of ``frame_problems``                              WARN     elevation: the depth image
+                                                                     has no valid pixel ...
     none of these                                           OK       ok
     ======================================================  =======  ===============================
 
@@ -296,6 +302,7 @@ def vision_system_health(
         problems.append(
             (WARN, f'{callback_failures_recent} of {callbacks_recent} callbacks failed in the last period')
         )
+    problems += [(WARN, problem) for problem in frame_problems]
     values = [
         ('registered', _yes(registered)),
         ('source', source),

@@ -149,8 +149,10 @@ def format_callback(request) -> str:
         box = detected.bounding_box
         points = ' '.join(f'({x:.3f}, {y:.3f})' for x, y in polygon_to_points(detected.boundary))
         label = f' {detected.label}' if detected.label else ''
+        height = f', {detected.height:.3f} m high' if detected.height else ''
         lines.append(
             f'  [{i}]{label} bounds x {box.min_x:.3f}..{box.max_x:.3f}, y {box.min_y:.3f}..{box.max_y:.3f}'
+            f'{height}'
         )
         if detected.track_id:
             velocity = detected.velocity

@@ -162,6 +162,15 @@ VISION = dict(
         ({'queue_length': 50, 'queue_size': 0}, OK, 'ok'),  # unbounded: never nearly full
         ({'callback_failures_recent': 2}, WARN, '2 of 5 callbacks failed in the last period'),
         (
+            {
+                'frame_problems': [
+                    'elevation: the depth image has no valid pixel (every one 0, NaN or infinite)'
+                ]
+            },
+            WARN,
+            'elevation: the depth image has no valid pixel (every one 0, NaN or infinite)',
+        ),
+        (
             {'registered': False, 'frame_age': 9.0, 'callback_failures_recent': 1, 'callbacks_recent': 1},
             ERROR,
             'camera feed stale: last frame 9.0 s ago (stale after 2 s); '
