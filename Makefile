@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup rviz-setup test test-slow soak reliability-report bench demo lint format docs clean
+.PHONY: setup rviz-setup postgres-setup test test-slow soak reliability-report bench demo lint format docs clean
 
 setup:
 	@bash scripts/setup.sh
@@ -12,14 +12,18 @@ setup:
 rviz-setup:
 	@bash scripts/setup.sh --rviz
 
-test: setup
+# PostgreSQL and PostGIS too: the registry's tests run against a private cluster (docs/registry.md).
+postgres-setup:
+	@bash scripts/setup.sh --postgres
+
+test: postgres-setup
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 # The paper's case study 4.2: leaves out/obstacles/run.png and out/obstacles/summary.json.
 demo: setup
 	bash scripts/run_scenario.sh worlds/obstacles.yaml --out out/obstacles
 
-test-slow: setup
+test-slow: postgres-setup
 	$(PY) -m pytest -m slow $(PYTEST_ARGS)
 
 # The reliability suites (faults, load, hostile input, security, master restart) at small sizes:
@@ -30,7 +34,7 @@ reliability-report: setup
 # The slow variants (full sizes: 10 robots x 20 vision systems x 50 requests, repeated
 # faults), then the report with them; their lines are kept in $(SOAK_LOG), not run twice.
 SOAK_LOG := out/soak-reliability.jsonl
-soak: setup
+soak: postgres-setup
 	@mkdir -p out && rm -f $(SOAK_LOG)
 	DRVS_RELIABILITY_LOG=$(CURDIR)/$(SOAK_LOG) $(PY) -m pytest -m slow $(PYTEST_ARGS); status=$$?; \
 	$(PY) scripts/reliability_report.py --soak --slow-log $(SOAK_LOG) $(PYTEST_ARGS) && exit $$status
@@ -39,11 +43,11 @@ soak: setup
 # docs/performance.md's results and README.md's targets met. QUICK=1: small sizes, about
 # 2 minutes, into bench/results/quick/ (the full results and the docs stay as they are).
 # BENCH_ARGS='--only wire'.
-bench: setup
+bench: postgres-setup
 	$(PY) -m bench.run $(if $(QUICK),--size quick --out bench/results/quick,--size full --docs) $(BENCH_ARGS)
 
 # ruff, then mypy over the pure packages ([tool.mypy] in pyproject.toml).
-lint: setup
+lint: postgres-setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m mypy

@@ -32,15 +32,18 @@ from bench.common import SIZES, Context, Section
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / 'bench' / 'results'
 # In the order of the items: Table 1, the constrained link, latency, throughput,
-# the registry, vision, the planner, the fleet; then the fused tracks against ground truth, and the
-# HTTP gateway against ROS.
+# the registry, vision (and elevation and foreground against ground truth), the planner, the
+# fleet; then the fused tracks against ground truth, and the HTTP gateway against ROS.
 SECTIONS = (
     'wire',
     'link',
     'latency',
     'throughput',
     'registry',
+    'registry_db',
+    'replicas',
     'vision',
+    'elevation',
     'planner',
     'fleet',
     'tracking',

@@ -5,7 +5,8 @@
 # /usr/bin/python3 with --system-site-packages, installs pybullet and the test
 # tools into it, and installs the project (which generates drvs.msg and
 # drvs.srv), with headless Chromium and Selenium for the browser test; with --rviz also Debian's rviz
-# and xvfb. Idempotent: a second run that finds everything in place does no
+# and xvfb; with --postgres PostgreSQL, PostGIS and psycopg for a registry in a database
+# (docs/registry.md; `make test` asks for it: the registry's tests run against PostgreSQL too). Idempotent: a second run that finds everything in place does no
 # installs and finishes within seconds. Works as root or through sudo.
 set -euo pipefail
 
@@ -37,10 +38,13 @@ APT_PACKAGES=(
 command -v npm >/dev/null 2>&1 || APT_PACKAGES+=(npm)
 # RViz and a virtual display for its screenshot test, only when asked for:
 # `scripts/setup.sh --rviz` (make rviz-setup, run_scenario.sh --rviz).
+# PostgreSQL with PostGIS and psycopg 3, for `~registry:=postgresql://...` and its tests:
+# `scripts/setup.sh --postgres` (make test); scripts/postgres.sh runs a private cluster.
 for arg in "$@"; do
   case "$arg" in
     --rviz) APT_PACKAGES+=(rviz xvfb) ;;
-    *) printf 'setup: unknown option %s (the only one is --rviz)\n' "$arg" >&2; exit 2 ;;
+    --postgres) APT_PACKAGES+=(postgresql-15 postgresql-15-postgis-3 python3-psycopg) ;;
+    *) printf 'setup: unknown option %s (--rviz, --postgres)\n' "$arg" >&2; exit 2 ;;
   esac
 done
 # The test tools and the PyPI wheels, pinned to what the project was checked with (motmetrics:

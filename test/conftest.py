@@ -1,5 +1,6 @@
 """Fixtures shared by the whole suite.
 
+``postgres``: a private PostgreSQL cluster for the session (its ``dsn``), stopped and removed after it.
 ``ros``: a :class:`drvs.testing.RosHarness` per test — a private rosmaster on a
 free port with its own ROS_HOME and log folder; every node started through it
 is stopped at teardown, also when the test fails or times out. In a module marked
@@ -18,6 +19,7 @@ import pytest
 
 from drvs.testing import RosHarness, processes_of_session
 from drvs.testing.harness import SESSION_VARIABLE
+from drvs.testing.postgres import PostgresCluster
 
 
 def pytest_configure(config):
@@ -47,6 +49,14 @@ def ros(request):
         yield harness
     finally:
         harness.close()
+
+
+@pytest.fixture(scope='session')
+def postgres():
+    """A private PostgreSQL cluster (drvs.testing.postgres), started by the first test that needs it and
+    removed at the end of the session; each test empties the tables it uses."""
+    with PostgresCluster() as cluster:
+        yield cluster
 
 
 @pytest.fixture

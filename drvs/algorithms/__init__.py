@@ -1,7 +1,9 @@
 """The shared algorithm definitions: the ``NAME[:PARAMS]`` strings of DetectObjectBoundary.
 
 Built in: ``colour`` (:mod:`drvs.algorithms.colour`), ``apriltag``
-(:mod:`drvs.algorithms.apriltag`) and ``motion`` (:mod:`drvs.algorithms.motion`).
+(:mod:`drvs.algorithms.apriltag`), ``motion`` (:mod:`drvs.algorithms.motion`), ``foreground``
+(:mod:`drvs.algorithms.foreground`) and, for cameras with depth, ``elevation``
+(:mod:`drvs.algorithms.elevation`).
 Third-party packages add algorithms through the Python entry-point group
 ``drvs.algorithms``: each entry point names a class (instantiated with no
 arguments) or an instance with the members of :class:`Algorithm`;
@@ -22,6 +24,8 @@ from importlib.metadata import EntryPoint
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from drvs.vision.frame import Frame
 
 from drvs.algorithms.base import (
@@ -29,6 +33,7 @@ from drvs.algorithms.base import (
     NAME_PATTERN,
     Algorithm,
     AlgorithmError,
+    FrameProblem,
     PixelObject,
     outlines_of_mask,
     split_algorithm,
@@ -46,6 +51,7 @@ __all__ = [
     'Algorithm',
     'AlgorithmError',
     'AlgorithmSet',
+    'FrameProblem',
     'Colour',
     'ColourModel',
     'Parsed',
@@ -123,24 +129,39 @@ def builtin_algorithms(
     epsilon: float = 1.0,
     tag_height: float = 0.0,
     tag_heights: Mapping[str, float] | None = None,
+    depth: bool = True,
+    reference: np.ndarray | None = None,
+    fixed: bool = True,
 ) -> list[Algorithm]:
     """Fresh instances of the built-in algorithms (``motion`` keeps state: one per camera).
 
     ``tag_height``: the plane tags lie on unless the request says (``h=``);
-    ``tag_heights``: {label: height} known for particular tags (a world file's robot).
+    ``tag_heights``: {label: height} known for particular tags (a world file's robot);
+    ``depth``: the camera has depth, so ``elevation`` can run (False: left out, so the camera
+    does not register it and the server sends it only where it can run); ``reference``: the
+    camera's image of its empty floor for ``foreground`` (None: learnt from its first frames);
+    ``fixed``: the camera stands still, so ``foreground`` can run (left out on a moving mount).
     """
     from drvs.algorithms.apriltag import AprilTag
+    from drvs.algorithms.elevation import Elevation
+    from drvs.algorithms.foreground import Foreground
     from drvs.algorithms.motion import Motion
 
-    return [
+    algorithms: list[Algorithm] = [
         Colour(min_area, epsilon),
         AprilTag(default_height=tag_height, heights=tag_heights),
         Motion(epsilon=epsilon),
     ]
+    if fixed:
+        algorithms.append(Foreground(reference, epsilon))
+    if depth:
+        algorithms.append(Elevation(min_area, epsilon))
+    return algorithms
 
 
 BUILTIN_NAMES = ('apriltag', 'colour', 'motion')
-"""The names :func:`builtin_algorithms` answers to; what an empty ``algorithms`` registration means."""
+"""The built-ins every camera runs; what an empty ``algorithms`` registration means (a camera with
+depth registers ``elevation`` by name too)."""
 
 
 def plugin_algorithms(entry_points: Iterable[EntryPoint] | None = None) -> list[Algorithm]:
@@ -185,10 +206,13 @@ def load_algorithms(
     tag_height: float = 0.0,
     tag_heights: Mapping[str, float] | None = None,
     entry_points: Iterable[EntryPoint] | None = None,
+    depth: bool = True,
+    reference: np.ndarray | None = None,
+    fixed: bool = True,
 ) -> AlgorithmSet:
     """The built-ins (see :func:`builtin_algorithms`) and every plugin installed; a plugin that
     reuses a taken name is left out."""
-    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights)
+    algorithms = builtin_algorithms(min_area, epsilon, tag_height, tag_heights, depth, reference, fixed)
     taken = {a.name for a in algorithms}
     for plugin in plugin_algorithms(entry_points):
         if plugin.name in taken:

@@ -26,6 +26,12 @@ class AlgorithmError(ValueError):
     """An algorithm string that cannot be run; the message names the part and the problem."""
 
 
+class FrameProblem(AlgorithmError):
+    """A frame an algorithm cannot work on now (no depth, a depth image that does not fit, no
+    reference yet); the message says what is wrong. The vision system refuses the algorithm's
+    requests with it, and reports it on its diagnostics, until a frame works again."""
+
+
 @dataclass(frozen=True)
 class PixelObject:
     """One object found in an image: its outline in pixel coordinates and its area in pixels.
@@ -48,8 +54,18 @@ class PixelObject:
     confidence: float = 0.0
     """How sure the algorithm is of the object, 0 to 1, in a sense each algorithm documents;
     0: unknown (the default, for algorithms that do not say). Sent in DetectedObject.confidence."""
+    footprint: np.ndarray | None = None
+    """Where the object stands on the floor, (N, 2) (x, y) in ``map``, metres, when the algorithm
+    works it out itself (``elevation``): reported as it is instead of ``outline`` put on the floor."""
+    top_height: float = 0.0
+    """The object's top, metres above the floor, when the algorithm measures it; 0: unknown.
+    Sent in DetectedObject.height."""
 
     def __post_init__(self) -> None:
+        top = self.top_height
+        if isinstance(top, bool) or not isinstance(top, int | float | np.floating) or not top >= 0.0:
+            raise ValueError(f'PixelObject: top_height must be a number >= 0, got {top!r}')
+        object.__setattr__(self, 'top_height', float(top))
         confidence = self.confidence
         if isinstance(confidence, bool) or not isinstance(confidence, int | float | np.floating):
             raise ValueError(f'PixelObject: confidence must be a number 0-1, got {confidence!r}')
@@ -73,6 +89,12 @@ class Algorithm:
 
     def observe(self, frame: Frame) -> None:
         """Take one frame of the camera's stream (algorithms with memory)."""
+
+    def frame_problem(self, frame: Frame) -> str | None:
+        """Why ``frame`` cannot be worked on (no depth, no reference yet), naming the algorithm; None
+        when it can. The vision system refuses requests with it before they queue; ``detect``
+        raises :class:`FrameProblem` with it."""
+        return None
 
 
 def split_algorithm(text: object) -> tuple[str, str]:

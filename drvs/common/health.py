@@ -15,7 +15,7 @@ how rules combine: docs/design.md.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from drvs.common import status as drvs_status
@@ -125,6 +125,8 @@ def server_health(
     watches: int = 0,
     left_out: Mapping[str, str] | None = None,
     tracks: int = 0,
+    registry: str = 'memory',
+    registry_problem: str | None = None,
 ) -> Health:
     """The server's health from its registry, its forwarding pool and its refusals.
 
@@ -139,12 +141,16 @@ def server_health(
     :param left_out: vision systems the fusion stage leaves out (their outlines disagree with
         their neighbours'), with why.
     :param tracks: fused tracks now (a value only).
+    :param registry: where the registry lives: ``memory`` or the database (a value only).
+    :param registry_problem: why the registry's database is out of reach, None when it is not.
 
     ======================================================  =======  ===============================
     rule                                                    level    message
     ======================================================  =======  ===============================
     ``pending_forwards >= max_pending``                     ERROR    forward queue full: refusing
                                                                      BUSY (P of M pending)
+    ``registry_problem``                                    ERROR    registry database unreachable
+                                                                     for 12 s (...): serving from ...
     ``registered == 0``                                     WARN     no vision system registered
     ``pending_forwards > 0.8 * max_pending``                WARN     forward queue N% full
                                                                      (P of M pending)
@@ -170,6 +176,8 @@ def server_health(
         problems.append(
             (ERROR, f'forward queue full: refusing BUSY ({pending_forwards} of {max_pending} pending)')
         )
+    if registry_problem:
+        problems.append((ERROR, registry_problem))
     if registered == 0:
         problems.append((WARN, 'no vision system registered'))
     if max_pending > pending_forwards > NEARLY_FULL * max_pending:
@@ -192,6 +200,7 @@ def server_health(
         problems.append((WARN, f'left out of fusion: {reasons}'))
     values = [
         ('registered vision systems', str(registered)),
+        ('registry', f'{registry} (unreachable)' if registry_problem else registry),
         ('pending forwards', str(pending_forwards)),
         ('max pending forwards', str(max_pending)),
         ('rate-limited callers', str(rate_limited_callers)),
@@ -218,6 +227,7 @@ def vision_system_health(
     registration_status: str = '',
     registration_error: str = '',
     watches: int = 0,
+    frame_problems: Sequence[str] = (),
 ) -> Health:
     """A vision system's health from its registration, its camera feed, its queue and its callbacks.
 
@@ -236,6 +246,9 @@ def vision_system_health(
     :param registration_error: why the last registration failed (the refusal's
         message, or why the server did not answer); empty when it succeeded.
     :param watches: standing requests (watches) it serves now; a value, no rule.
+    :param frame_problems: why algorithms cannot work on the camera's frames now (an
+        ``elevation`` without usable depth, a ``foreground`` without its reference), one
+        message each, naming the algorithm.
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -253,6 +266,8 @@ def vision_system_health(
                                                                      (L of S)
     ``callback_failures_recent > 0``                        WARN     2 of 5 callbacks failed in
                                                                      the last period
+    each of ``frame_problems``                              WARN     elevation: the depth image
+                                                                     has no valid pixel ...
     none of these                                           OK       ok
     ======================================================  =======  ===============================
 
@@ -287,6 +302,7 @@ def vision_system_health(
         problems.append(
             (WARN, f'{callback_failures_recent} of {callbacks_recent} callbacks failed in the last period')
         )
+    problems += [(WARN, problem) for problem in frame_problems]
     values = [
         ('registered', _yes(registered)),
         ('source', source),

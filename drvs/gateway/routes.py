@@ -236,6 +236,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             'boundary': {**_POINTS, 'description': 'the outline in `map`, counter-clockwise seen from above'},
             'bounding_box': {'$ref': '#/components/schemas/Region'},
             'label': {'type': 'string'},
+            'height': {**_NUMBER, 'description': "metres above the floor of the object's top; 0: unknown"},
             'track_id': {'type': 'integer', 'description': '0: not tracked'},
             'confidence': _NUMBER,
             'velocity': {'type': 'array', 'items': _NUMBER, 'description': '[x, y, z] m/s in `map`'},

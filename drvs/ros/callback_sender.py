@@ -48,7 +48,7 @@ class CallbackSender:
         self.markers_pub = rospy.Publisher(markers_topic, MarkerArray, queue_size=10)
 
     def send(self, asked, vision_system: str, stamp: float, found) -> bool:
-        """Send ``found`` (:class:`drvs.vision.pipeline.Located`: outline, label, confidence; [] for a
+        """Send ``found`` (:class:`drvs.vision.pipeline.Located`: outline, label, confidence, height; [] for a
         watch's "all gone") seen in a frame of ``stamp`` to the caller of ``asked`` (a
         :class:`drvs.vision.detections.Job` or a watch's :class:`drvs.vision.watch_runner.Terms`);
         whether the call arrived."""
@@ -57,9 +57,7 @@ class CallbackSender:
             request_id=asked.request_id,
             vision_system=vision_system,
             stamp=rospy.Time.from_sec(stamp),
-            objects=[
-                points_to_detected_object(outline, label, confidence) for outline, label, confidence in found
-            ],
+            objects=[points_to_detected_object(*located) for located in found],
         )
         buffer = io.BytesIO()
         request.serialize(buffer)  # once: counted, then sent as it is

@@ -74,6 +74,8 @@ class TopicSource:
         self._footprint: list = []
         self.tf_buffer = None
         self.image_topic = ''
+        self.pose_problem: str | None = None  # why the camera's pose is not known now (no tf), else None
+        self.depth_problem: str | None = None  # why the newest depth image was left out, else None
 
     def start(self) -> None:
         import message_filters
@@ -97,6 +99,11 @@ class TopicSource:
             self._sync.registerCallback(self._on_frame)
         else:
             rospy.Subscriber(image_name, image_type, self._on_frame, queue_size=1, buff_size=IMAGE_BUFFER)
+
+    @property
+    def depth(self) -> bool:
+        """Whether frames come with a depth image (``~depth``): algorithms that need one run."""
+        return bool(self.params.depth)
 
     def tag_heights(self) -> dict:
         """None known: a request (``h=H``) or ``~tag_height`` says how high a tag lies."""
@@ -151,6 +158,13 @@ class TopicSource:
         received = self.feed.newest()
         return None if received is None else self._decode(received)
 
+    def latest(self) -> Frame | None:
+        """The newest frame if it can be decoded now (for a look at it before a request), else None."""
+        try:
+            return self.newest()
+        except FrameUnavailable:
+            return None
+
     def _decode(self, received: _Received) -> Frame:
         with received.lock:
             if received.decoded is None:
@@ -176,12 +190,18 @@ class TopicSource:
             )
         depth = None
         if received.depth is not None:
-            depth = self.depth_metres(received.depth)
-            if depth.shape != (height, width):
-                raise FrameUnavailable(
-                    f'{self.depth_topic}: depth image is {depth.shape[1]}x{depth.shape[0]}, '
-                    f'not aligned with the {width}x{height} colour image'
-                )
+            try:
+                depth = self.depth_metres(received.depth)
+                if depth.shape != (height, width):
+                    raise FrameUnavailable(
+                        f'{self.depth_topic}: depth image is {depth.shape[1]}x{depth.shape[0]}, '
+                        f'not registered to the {width}x{height} colour image'
+                    )
+            except FrameUnavailable as error:  # the colour image still serves colour algorithms
+                depth, self.depth_problem = None, str(error)
+                rospy.logwarn_throttle(10.0, '%s: depth left out: %s', rospy.get_name(), error)
+            else:
+                self.depth_problem = None
         rotation, translation = self.pose(image.header.frame_id, image.header.stamp)
         return Frame(
             rgb=np.ascontiguousarray(rgb),
@@ -231,8 +251,10 @@ class TopicSource:
         try:
             rotation, translation = self.pose(info.header.frame_id or self._frame_id(), rospy.Time(0))
         except FrameUnavailable as error:
+            self.pose_problem = f'no calibrated pose: {error}'
             rospy.logwarn_throttle(10.0, '%s: not registering yet: %s', rospy.get_name(), error)
             return None
+        self.pose_problem = None
         key = (version, rotation.round(6).tobytes(), translation.round(6).tobytes())
         if key != self._footprint_key:
             self._footprint = model.with_pose(rotation, translation).floor_footprint(self.params.max_range)
@@ -257,12 +279,12 @@ class TopicSource:
         return age if math.isfinite(age) else None
 
     def unavailable(self) -> str | None:
-        """Why requests cannot be served now (a stale feed), or None."""
+        """Why requests cannot be served now (a stale feed, no pose on tf), or None."""
         if self.feed.stale():
             age = self.feed.age()
             since = 'no frame yet' if age == float('inf') else f'no frame for {age:.1f} s'
             return f'{self.image_topic}: {since}'
-        return None
+        return self.pose_problem
 
     def close(self) -> None:
         pass

@@ -82,6 +82,7 @@ def object_to_dict(detected) -> dict[str, Any]:
             'max_y': _number(box.max_y),
         },
         'label': detected.label,
+        'height': _number(detected.height),
         'track_id': detected.track_id,
         'confidence': _number(detected.confidence),
         'velocity': [_number(velocity.x), _number(velocity.y), _number(velocity.z)],

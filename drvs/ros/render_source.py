@@ -9,6 +9,7 @@ does. Described in docs/nodes/vision_system.md.
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import rospy
 
@@ -33,6 +34,9 @@ class RenderSource:
     """
 
     name = 'render'
+    depth = True  # the renderer's depth buffer comes with every frame
+    pose_problem = None  # the world file gives the pose
+    depth_problem = None  # the renderer's depth always fits
 
     def __init__(self, params, count):
         self.world = load_world(params.world)
@@ -48,6 +52,8 @@ class RenderSource:
         self.frame_id = optical_frame(self.config.name)
         self._broadcaster = None  # tf, made by start(): static for a fixed camera
         self._fixed_footprint: list | None = None
+        self.noise = self.config.depth_noise  # the depth sensor's imperfections (None: perfect depth)
+        self._rng = self.noise.generator(self.config.name) if self.noise is not None else None
 
     @property
     def moving(self) -> bool:
@@ -102,7 +108,7 @@ class RenderSource:
                 raise FrameUnavailable('the vision system is shutting down')
             if poses:
                 self.scene.apply_poses(poses)
-            frame = self.scene.render(self.camera_at(stamp), stamp)
+            frame = self.scene.render(self.camera_at(stamp), stamp, self.noise, self._rng)
         self._count(renders=1)
         return frame
 
@@ -115,6 +121,16 @@ class RenderSource:
 
     def newest(self) -> Frame:
         return self.cache.get(rospy.get_time())[0]
+
+    def latest(self) -> Frame | None:
+        """The last frame rendered, if any (no new render for a look before a request)."""
+        return self.cache.last
+
+    def empty_floor(self):
+        """The camera's view of the world without a body in it, (H, W, 3) RGB: ``foreground``'s reference."""
+        empty = replace(self.world, robots=(), objects=())
+        with self._scene_lock, Scene(empty) as scene:
+            return scene.render(self.base_camera).rgb
 
     def footprint(self) -> list | None:
         if not self.config.moving:  # asked 20 times a second: a fixed camera's never changes

@@ -6,6 +6,8 @@ docs/nodes/drvs_server.md.
 
 from __future__ import annotations
 
+import os
+import socket
 import threading
 
 import rosgraph.names
@@ -33,6 +35,13 @@ from drvs.server.params import ServerSettings
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration, Registry
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
+from drvs.server.shared_registry import (
+    SharedRegistry,
+    StoreError,
+    StoreUnavailable,
+    adopted_watch,
+    stored_watch,
+)
 from drvs.server.tracker import TrackerSettings
 from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
 from drvs.srv import (
@@ -47,6 +56,10 @@ from drvs.srv import (
 
 __all__ = ['DrvsServer']
 
+SHARED_SYNC_PERIOD = 0.1
+"""Seconds between two looks at a shared registry's change log (renewals and sweeps: their own periods)."""
+TAKEOVER_PERIOD = 1.0
+"""Seconds between two looks for the watches of replicas gone silent."""
 WATCH_WAIT = 0.5
 """Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""
 STATS_PERIOD = 1.0
@@ -83,12 +96,7 @@ class DrvsServer:
     def __init__(self, settings: ServerSettings):
         self.settings = settings
         self.node = NodeScaffold(self.health, counters=STATS_FIELDS)
-        self.registry = Registry(
-            lease=settings.lease,
-            max_failures=settings.max_failures,
-            ejection_time=settings.ejection_time,
-            max_ejection_time=settings.max_ejection_time,
-        )
+        self.registry = self._make_registry(settings)
         self.forwarder = Forwarder(
             settings.forward_timeout,
             self.registry,
@@ -123,6 +131,8 @@ class DrvsServer:
             settings.objects_period,
         )
         self.forwarder.deliver = self.fusion.deliver
+        if isinstance(self.registry, SharedRegistry):
+            self.registry.make_client = self.forwarder.make_client
         self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
         self.checks = MasterChecks(
             settings.check_timeout,
@@ -150,11 +160,48 @@ class DrvsServer:
             busy_retry_after=settings.busy_retry_after,
         )
         self._watch_lock = threading.Lock()  # guards watches, and keeps their forwards in order
+        self._saved_after = 0  # a shared registry's recoveries when the watches were last saved
+        self._next_takeover = 0.0
         self._watch_wake = threading.Event()  # set when the registry changed or a forward failed
         self._held = threading.local()  # .forwards: queued by this thread's handler, not sent yet
         self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
         self.algorithm_names: AlgorithmNames | None = None
         self._registry_publisher = self._markers_publisher = self._stats_publisher = None
+
+    @staticmethod
+    def _make_registry(settings: ServerSettings) -> Registry:
+        """The in-memory registry, or one shared through the database ``~registry`` names.
+
+        :raises StoreError: the database cannot be used (one line; the node exits 2).
+        """
+        limits = dict(
+            lease=settings.lease,
+            max_failures=settings.max_failures,
+            ejection_time=settings.ejection_time,
+            max_ejection_time=settings.max_ejection_time,
+        )
+        if settings.registry == 'memory':
+            return Registry(**limits)
+        try:
+            from drvs.server.pg_store import PgStore  # psycopg only when a database is asked for
+        except ImportError as error:
+            raise StoreError(
+                f'~registry: a PostgreSQL registry needs psycopg 3 ({error}): run scripts/setup.sh --postgres'
+            ) from None
+
+        replica = f'{rospy.get_name()}@{socket.gethostname()}:{os.getpid()}'
+        store = PgStore(settings.registry, replica=replica)
+        store.open()
+        registry = SharedRegistry(store, retry_after=settings.unavailable_retry_after, **limits)
+        try:
+            registry.load()
+        except StoreUnavailable as error:
+            store.close()
+            raise StoreError(
+                f'~registry: the registry database {store.where} did not answer: {error}'
+            ) from None
+        rospy.loginfo('registry: %d vision systems from %s (replica %s)', len(registry), store.where, replica)
+        return registry
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -165,7 +212,10 @@ class DrvsServer:
         self._stats_publisher = rospy.Publisher('~stats', ServerStats, queue_size=1, latch=True)
         self.forwarder.start()
         self.dispatcher.start()
-        self.node.every(min(self.settings.lease / 4, 0.5), self._expire, 'lease-expiry')
+        shared = isinstance(self.registry, SharedRegistry)
+        self.node.every(
+            SHARED_SYNC_PERIOD if shared else min(self.settings.lease / 4, 0.5), self._expire, 'lease-expiry'
+        )
         self.node.spawn(self._publish_loop, 'registry-publisher')
         self.node.spawn(self._watch_loop, 'watches')
         self.node.spawn(self._stats_loop, 'stats-publisher')
@@ -200,6 +250,11 @@ class DrvsServer:
             self._changed.notify_all()
         self.dispatcher.stop(timeout=self.settings.forward_timeout + 1.0)
         self.forwarder.stop(timeout=self.settings.forward_timeout + 1.0)
+        if isinstance(self.registry, SharedRegistry):  # the entries stay in the database, for the replicas
+            for entry in self.registry.entries():
+                self._close(entry)
+            self.registry.store.close()
+            return
         for entry in self.registry.entries():
             self._close(self.registry.unregister(entry.service_name))
 
@@ -509,6 +564,11 @@ class DrvsServer:
                 raise Refusal(INVALID, str(error)) from None
             self._submit(answer.forwards)
             serving = len(self.watches.serving((caller, request.request_id)))
+            standing = self.watches.get((caller, request.request_id))
+        if standing is not None:
+            self._save_watch(standing)
+        else:
+            self._drop_watch(caller, request.request_id)
         return WatchObjectBoundaryResponse(
             accepted=True,
             status=ACCEPTED,
@@ -545,11 +605,71 @@ class DrvsServer:
 
     # -- background loops --------------------------------------------------------------------
     def _expire(self) -> None:
-        for entry in self.registry.expire():
+        version = self.registry.version
+        for entry in self.registry.sync():
             rospy.loginfo('lease of %s expired: removed', entry.service_name)
             self._close(entry)
             self._forget(entry)
             self._mark_changed()
+        if isinstance(self.registry, SharedRegistry):
+            self._follow_shared()
+        if self.registry.version != version:
+            self._mark_changed()
+
+    def _follow_shared(self) -> None:
+        """A shared registry's part of the loop: the watches of vision systems restarted through another
+        replica, the watches to save again after an outage, those of silent replicas to take over."""
+        registry = self.registry
+        restarted, registry.restarted = registry.restarted, []
+        with self._watch_lock:
+            for service in restarted:
+                self.watches.forget(service)
+        if registry.down_since is not None:
+            return
+        if registry.recoveries != self._saved_after:
+            self._saved_after = registry.recoveries
+            with self._watch_lock:
+                standing = self.watches.standing()
+            for watch in standing:
+                self._save_watch(watch)
+        now = rospy.get_time()
+        if now < self._next_takeover:
+            return
+        self._next_takeover = now + TAKEOVER_PERIOD
+        try:
+            orphans = registry.store.orphaned_watches(self.settings.watch_takeover)
+        except StoreUnavailable:
+            return
+        adopted = 0
+        with self._watch_lock:
+            for stored in orphans:
+                adopted += self.watches.adopt(adopted_watch(stored, rospy.get_time()))
+        if orphans:
+            rospy.loginfo(
+                'took over %d watches of replicas not heard from in %g s',
+                adopted,
+                self.settings.watch_takeover,
+            )
+            self._watch_wake.set()
+
+    def _save_watch(self, watch) -> None:
+        """Keep ``watch`` in the shared store (a replica that takes over finds it); fused watches are
+        not kept: their callbacks go through this replica's fusion stage."""
+        if not isinstance(self.registry, SharedRegistry) or watch.forward_as is not None:
+            return
+        if self.registry.down_since is not None:
+            return  # saved again once the database is back
+        try:
+            self.registry.store.save_watch(stored_watch(watch, rospy.get_time()))
+        except StoreUnavailable:
+            pass  # saved again at its next renewal, or once the database is back (_follow_shared)
+
+    def _drop_watch(self, caller: str, request_id: str) -> None:
+        if isinstance(self.registry, SharedRegistry) and self.registry.down_since is None:
+            try:
+                self.registry.store.drop_watch(caller, request_id)
+            except StoreUnavailable:
+                pass  # it expires in the database by itself
 
     def _mark_changed(self) -> None:
         with self._changed:
@@ -611,7 +731,10 @@ class DrvsServer:
         with self.fusion.lock:
             left_out, tracks = self.fusion.stage.flagged(), self.fusion.stage.track_count()
         recent = refusals.take_period()  # first: the totals then include every recent one
+        shared = isinstance(self.registry, SharedRegistry)
         return server_health(
+            registry=self.registry.store.where if shared else 'memory',
+            registry_problem=self.registry.problem() if shared else None,
             registered=len(self.registry),
             pending_forwards=self.dispatcher.pending,
             max_pending=self.settings.max_pending,

@@ -116,6 +116,8 @@ class Feed:
             self.canvas = self.camera
             self.K = intrinsics_of(self.camera, TINY_RENDERER_SAMPLE)
             self.D = (0.0,) * 5
+        self.noise = config.depth_noise
+        self.rng = self.noise.generator(config.name) if self.noise is not None else None
         self.last_stamp: float | None = None
         self.image_pub = self.info_pub = self.depth_pub = self.compressed_pub = None
 
@@ -250,7 +252,8 @@ class SimCameraNode:
                 return None
             if poses:
                 self.scene.apply_poses(poses)
-            frame = self.scene.render(feed.camera_at(stamp - self._start_time, feed.canvas), stamp)
+            camera = feed.camera_at(stamp - self._start_time, feed.canvas)
+            frame = self.scene.render(camera, stamp, feed.noise, feed.rng)
         return feed.lens.apply(frame) if feed.lens is not None else frame
 
     def _publish(self, feed: Feed) -> int:

@@ -20,9 +20,11 @@ import numpy as np
 import rospy
 from sensor_msgs.msg import Image
 
-from drvs.algorithms import AlgorithmError, load_algorithms
+from drvs.algorithms import Algorithm, AlgorithmError, FrameProblem, Parsed, load_algorithms
+from drvs.algorithms.foreground import read_reference
 from drvs.common.counters import PeriodCounts
 from drvs.common.health import Health, vision_system_health
+from drvs.common.settings import ParamError
 from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.common.status import name as status_name
 from drvs.common.validation import ValidationError, request_fields
@@ -44,6 +46,7 @@ from drvs.srv import (
 )
 from drvs.vision.detections import FrameDetections, Job
 from drvs.vision.frame import Frame
+from drvs.vision.frame_problems import FrameProblems
 from drvs.vision.params import VisionSystemParams
 from drvs.vision.pipeline import draw_detections, in_region, on_floor
 from drvs.vision.registration import RENEW, UNREGISTER, Attempt, Registration
@@ -84,9 +87,22 @@ class VisionSystemNode:
             self.source = RenderSource(params, self._count)
         else:
             self.source = TopicSource(params, self._count)
+        reference = None
+        if params.reference:
+            try:
+                reference = read_reference(params.reference)
+            except ValueError as error:
+                raise ParamError('reference', str(error)) from None
         self.algorithms = load_algorithms(
-            params.min_area, params.epsilon, params.tag_height, self.source.tag_heights()
+            params.min_area,
+            params.epsilon,
+            params.tag_height,
+            self.source.tag_heights(),
+            depth=self.source.depth,
+            reference=reference,
+            fixed=not self.source.moving,
         )
+        self.frame_problems = FrameProblems()  # why an algorithm cannot use the frames now
         # Requests: the algorithm strings that parsed lately, parsed again only when new (as parse()).
         self._parsed_algorithms = SimpleNamespace(
             parse=functools.lru_cache(maxsize=MAX_ALGORITHMS_COUNTED)(self.algorithms.parse)
@@ -113,6 +129,9 @@ class VisionSystemNode:
         self.debug_pub = rospy.Publisher('~debug_image', Image, queue_size=1)
         self.callbacks.start(markers_topic(rospy.resolve_name(self.params.register_service)))
         self.source.start()
+        foreground = self.algorithms.get('foreground')
+        if foreground is not None and not self.params.reference and hasattr(self.source, 'empty_floor'):
+            foreground.set_reference(self.source.empty_floor())  # the simulation knows its empty floor
         self._register_client = ServiceClient(
             self.params.register_service, RegisterVisionService, timeout=self.params.register_timeout
         )
@@ -178,9 +197,12 @@ class VisionSystemNode:
         problem = self.source.unavailable()
         if problem:
             return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
-        self._count_algorithm(request.algorithm)
-        if algorithm.algorithm.streaming:
+        if algorithm.algorithm.streaming:  # also while refused below: foreground learns its reference
             self._streaming_until = arrival + self.params.motion_window
+        problem = self._frame_problem(algorithm, arrival)
+        if problem:
+            return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
+        self._count_algorithm(request.algorithm)
         job = Job(algorithm, region, request.callback_service, request.request_id, arrival, request.fused)
         try:
             self._jobs.put_nowait(job)
@@ -250,7 +272,7 @@ class VisionSystemNode:
                 if cancelled:
                     rospy.loginfo('%s: watch %r cancelled', rospy.get_name(), request.request_id)
                 return WatchObjectBoundaryResponse(accepted=True, status=ACCEPTED)
-            problem = self.source.unavailable()
+            problem = self.source.unavailable() or self._frame_problem(terms.algorithm, now)
             if problem:
                 raise Refusal(UNAVAILABLE, problem, self.params.retry_period)
             grant = self.watches.stand(terms, float(request.duration), now)
@@ -296,7 +318,12 @@ class VisionSystemNode:
             return
         if job.algorithm.algorithm.streaming:
             job.algorithm.algorithm.observe(frame)  # the model must have seen the frame it judges
-        found = in_region(self._detections.on_floor(frame, job.algorithm), job.region)
+        try:
+            found = in_region(self._detections.on_floor(frame, job.algorithm), job.region)
+        except FrameProblem as error:
+            self._note_frame_problem(job.algorithm, error, f'request {job.request_id!r}')
+            return
+        self.frame_problems.clear(job.algorithm.name)
         outlines = [outline for outline, *_ in found]
         if self.debug_pub.get_num_connections() > 0:
             self._publish_debug(frame, outlines)
@@ -356,7 +383,11 @@ class VisionSystemNode:
             try:
                 if terms.algorithm.text not in detected:
                     detected[terms.algorithm.text] = on_floor(frame, terms.algorithm)
+                    self.frame_problems.clear(terms.algorithm.name)
                 found = in_region(detected[terms.algorithm.text], terms.region)
+            except FrameProblem as error:
+                self._note_frame_problem(terms.algorithm, error, f'watch {terms.request_id!r}')
+                continue
             except Exception:  # one watch that fails must not stop the others
                 rospy.logerr(
                     '%s: watch %r failed:\n%s', rospy.get_name(), terms.request_id, traceback.format_exc()
@@ -368,6 +399,39 @@ class VisionSystemNode:
                 terms, self.service_name, frame.stamp, objects
             ):
                 self.watches.callback_failed(terms)
+
+    def _frame_problem(self, algorithm: Parsed, now: float) -> str | None:
+        """Why ``algorithm`` cannot work on this camera's frames now: what the newest frame at hand
+        shows, or without one a problem met lately (:class:`FrameProblems`); None if none is known."""
+        check = getattr(algorithm.algorithm, 'frame_problem', None)
+        if getattr(type(algorithm.algorithm), 'frame_problem', None) is Algorithm.frame_problem:
+            check = None  # it says of no frame that it cannot work on it: no frame to look at
+        frame = self.source.latest() if check is not None else None  # decoding it notes a depth problem
+        problem = self._depth_problem(algorithm)
+        if problem is None and frame is not None:  # the newest frame says it all
+            problem = check(frame)
+            if problem is None:
+                self.frame_problems.clear(algorithm.name)
+            return problem
+        return problem or self.frame_problems.current(algorithm.name, now)
+
+    def _depth_problem(self, algorithm: Parsed) -> str | None:
+        """Why the camera's depth was left out of its newest frame, for an algorithm that needs it."""
+        if getattr(algorithm.algorithm, 'needs_depth', False) and self.source.depth_problem:
+            return f'{algorithm.name}: {self.source.depth_problem}'
+        return None
+
+    def _note_frame_problem(self, algorithm: Parsed, error: FrameProblem, what: str) -> None:
+        problem = self._depth_problem(algorithm) or str(error)
+        self.frame_problems.note(algorithm.name, problem, rospy.get_time())
+        self.node.log_throttled(
+            ('frame problem', algorithm.name),
+            rospy.logwarn,
+            '%s: %s not served: %s',
+            rospy.get_name(),
+            what,
+            problem,
+        )
 
     # -- registration --------------------------------------------------------------------------
     def _registration_tick(self) -> None:
@@ -438,6 +502,11 @@ class VisionSystemNode:
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=registration.status,
             registration_error=registration.error,
+            frame_problems=[
+                *([self.source.pose_problem] if self.source.pose_problem else []),
+                *([f'depth left out: {self.source.depth_problem}'] if self.source.depth_problem else []),
+                *self.frame_problems.messages(rospy.get_time()),
+            ],
         )
 
     def _count(self, **increments: int) -> None:

@@ -8,13 +8,32 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drvs.common.settings import NON_NEGATIVE, POSITIVE, ParamError, Settings, at_least, param
+from drvs.common.settings import NON_NEGATIVE, POSITIVE, ParamError, Range, Settings, at_least, param
 
 __all__ = ['ServerSettings']
 
 
+REGISTRY = Range(
+    lambda value: value == 'memory' or value.startswith(('postgresql://', 'postgres://')),
+    'must be memory or a postgresql:// DSN',
+    '`memory` or a `postgresql://` DSN',
+)
+
+
 @dataclass(frozen=True)
 class ServerSettings(Settings):
+    registry: str = param(
+        'memory',
+        'where the registry lives: this process, or a PostgreSQL database shared by replicas '
+        '(docs/registry.md)',
+        check=REGISTRY,
+    )
+    watch_takeover: float = param(
+        5.0,
+        'with a database: the watches of a replica not heard from this long are taken over',
+        unit='s',
+        check=POSITIVE,
+    )
     lease: float = param(
         10.0, 'a registration expires unless renewed within this time', unit='s', check=POSITIVE
     )

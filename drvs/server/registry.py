@@ -218,7 +218,7 @@ class Registry:
                 change = RENEWED if old.algorithms == names else CHANGED
             else:
                 change = REGISTERED if old is None else MOVED
-            entry = self._entries[service_name] = Registration(
+            entry = Registration(
                 service_name,
                 points,
                 polygon,
@@ -229,6 +229,13 @@ class Registry:
                 client=client,
                 watch_service=watch_service,
             )
+            try:
+                self._persist(entry, change)  # a store's write; may refuse before anything changed here
+            except Refusal:
+                if old is None and client is not None:
+                    client.close()
+                raise
+            self._entries[service_name] = entry
             if moved:
                 self._index.insert(service_name, polygon, points, value=entry)
             else:
@@ -238,6 +245,17 @@ class Registry:
                 self._failures[service_name] = 0
             heapq.heappush(self._expiries, (expires_at, service_name))
         return change
+
+    def _persist(self, entry: Registration, change: str) -> None:
+        """Called with the lock held before ``entry`` takes effect: nothing to do in memory
+        (a shared registry writes it to its store here, :mod:`drvs.server.shared_registry`)."""
+
+    def _removed(self, entry: Registration) -> None:
+        """Called with the lock held when ``entry`` is removed: nothing more to do in memory."""
+
+    def _live(self, entry: Registration, now: float) -> bool:
+        """Whether ``entry`` may be matched at ``now``: its lease has not run out."""
+        return entry.expires_at > now
 
     def _refuse_if_ejected(self, service_name: str, instance: str, now: float) -> None:
         times, until, ejected = self._ejections.get(service_name, (0, 0.0, ''))
@@ -275,6 +293,7 @@ class Registry:
         entry = self._entries.pop(service_name, None)
         if entry is None:
             return None
+        self._removed(entry)
         self._failures.pop(service_name, None)
         self._index.remove(service_name)
         self.version += 1
@@ -293,14 +312,14 @@ class Registry:
         return sorted(
             entry.service_name
             for entry in found
-            if entry.expires_at > now and (algorithm is None or algorithm in entry.algorithms)
+            if self._live(entry, now) and (algorithm is None or algorithm in entry.algorithms)
         )
 
     def available_algorithms(self) -> list[str]:
         """The algorithm names that at least one live vision system runs, sorted."""
         now = self.clock()
         with self._lock:
-            live = [entry.algorithms for entry in self._entries.values() if entry.expires_at > now]
+            live = [entry.algorithms for entry in self._entries.values() if self._live(entry, now)]
         return sorted(frozenset().union(*live))
 
     def expire(self) -> list[Registration]:
@@ -322,12 +341,17 @@ class Registry:
                     del self._ejections[name]
         return removed
 
+    def sync(self) -> list[Registration]:
+        """The server's periodic call: :meth:`expire` (a shared registry also follows its store)."""
+        return self.expire()
+
     def record_success(self, service_name: str) -> None:
         """A forward succeeded: the run of failures and past ejections are forgotten."""
         with self._lock:
             if service_name in self._failures:
                 self._failures[service_name] = 0
-            self._ejections.pop(service_name, None)
+            if self._ejections.pop(service_name, None) is not None:
+                self._forgiven(service_name)
 
     def record_failure(self, service_name: str) -> Registration | None:
         """Count a failed forward; at ``max_failures`` in a row remove and eject the entry and return it."""
@@ -337,12 +361,19 @@ class Registry:
             self._failures[service_name] += 1
             if self._failures[service_name] < self.max_failures:
                 return None
-            times = self._ejections.get(service_name, (0, 0.0, ''))[0] + 1
-            duration = min(self.ejection_time * times, self.max_ejection_time)
             instance = self._entries[service_name].instance
-            self._ejections[service_name] = (times, self.clock() + duration, instance)
+            self._ejections[service_name] = self._eject(service_name, instance)
             self.ejected_total += 1
             return self._remove(service_name)
+
+    def _eject(self, service_name: str, instance: str) -> tuple[int, float, str]:
+        """Called with the lock held: ``service_name``'s ejection (times, refused until, instance)."""
+        times = self._ejections.get(service_name, (0, 0.0, ''))[0] + 1
+        duration = min(self.ejection_time * times, self.max_ejection_time)
+        return (times, self.clock() + duration, instance)
+
+    def _forgiven(self, service_name: str) -> None:
+        """Called with the lock held when a successful forward forgets ``service_name``'s ejections."""
 
     def failures(self, service_name: str) -> int:
         return self._failures.get(service_name, 0)

@@ -282,6 +282,21 @@ class WatchTable:
             times.append(self._retry_at)
         return min(times, default=None)
 
+    def adopt(self, watch: Watch) -> bool:
+        """Take over ``watch`` from a replica gone silent (docs/registry.md): it stands here from
+        now on, and the next :meth:`sync` forwards it to the vision systems that serve it. False
+        (nothing done) if a watch of the same key stands here already, or its callback is taken."""
+        owner = self._owners.get((watch.callback_service, watch.request_id))
+        if watch.key in self._watches or (owner is not None and owner != watch.caller):
+            return False
+        if len(self._watches) >= self.max_watches:
+            return False
+        self._watches[watch.key] = watch
+        self._serving[watch.key] = {}
+        self._owners[(watch.callback_service, watch.request_id)] = watch.caller
+        self._matched = None
+        return True
+
     def forget(self, vision_system: str) -> None:
         """``vision_system`` registered anew and holds no watches: forward them again at the next sync."""
         for serving in self._serving.values():

@@ -27,6 +27,7 @@ import numpy as np
 import pybullet
 
 from drvs.algorithms.tag_images import quad_side, write_quad, write_tag_image
+from drvs.sim.depth_noise import DepthNoise
 from drvs.sim.world import Body, World
 from drvs.vision.camera import PinholeCamera
 from drvs.vision.frame import Frame
@@ -47,14 +48,17 @@ pixel's centre (c + 0.5, r + 0.5) in :mod:`drvs.vision.camera`'s convention: at 
 and the rows r with v_top <= r + 1 <= v_bottom of its projected corners."""
 
 
-def render_view(client: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
-    """(RGB (H, W, 3) uint8, depth buffer (H, W) in [0, 1]) of ``camera``'s view in PyBullet
-    ``client``, with TinyRenderer: ambient light only, no shadows."""
+def render_view(
+    client: int, camera: PinholeCamera, segmentation: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(RGB (H, W, 3) uint8, depth buffer (H, W) in [0, 1], and with ``segmentation`` the body
+    id each pixel shows (-1: none), else None) of ``camera``'s view in PyBullet ``client``, with
+    TinyRenderer: ambient light only, no shadows."""
     view = pybullet.computeViewMatrix(camera.eye, camera.target, camera.up, physicsClientId=client)
     projection = pybullet.computeProjectionMatrixFOV(
         camera.fov_deg, camera.aspect, camera.near, camera.far, physicsClientId=client
     )
-    width, height, rgba, depth, _ = pybullet.getCameraImage(
+    width, height, rgba, depth, bodies = pybullet.getCameraImage(
         camera.width,
         camera.height,
         view,
@@ -64,11 +68,12 @@ def render_view(client: int, camera: PinholeCamera) -> tuple[np.ndarray, np.ndar
         lightDiffuseCoeff=0.0,
         lightSpecularCoeff=0.0,
         renderer=pybullet.ER_TINY_RENDERER,
-        flags=pybullet.ER_NO_SEGMENTATION_MASK,
+        flags=0 if segmentation else pybullet.ER_NO_SEGMENTATION_MASK,
         physicsClientId=client,
     )
     rgb = np.ascontiguousarray(np.reshape(np.asarray(rgba, np.uint8), (height, width, 4))[..., :3])
-    return rgb, np.reshape(np.asarray(depth, np.float32), (height, width))
+    shown = np.reshape(np.asarray(bodies, np.int32), (height, width)) if segmentation else None
+    return rgb, np.reshape(np.asarray(depth, np.float32), (height, width)), shown
 
 
 def _rgba(colour: tuple[int, int, int]) -> list[float]:
@@ -91,8 +96,12 @@ class Scene:
         self.client = pybullet.connect(pybullet.DIRECT)
         self.bodies: dict[str, int] = {}
         self.sizes: dict[str, tuple[float, float, float]] = {}
+        self.bottoms: dict[str, float] = {}
+        """How high above the floor each body's underside is (0 for all but a hanging object)."""
         self.tags: dict[str, int] = {}
         """The tag quad on top of each body that carries one, by body name."""
+        self.shiny: list[int] = []
+        """The PyBullet ids of the shiny bodies (a depth sensor sees holes on them)."""
         self._poses: dict[str, tuple[float, float, float]] = {}
         self.texture_folder: Path | None = None
         """The temporary directory of the tag textures (None without tags); removed by :meth:`close`."""
@@ -125,6 +134,9 @@ class Scene:
             0, collision, visual, [0, 0, half[2]], physicsClientId=self.client
         )
         self.sizes[body.name] = body.size
+        self.bottoms[body.name] = body.bottom
+        if body.shiny:
+            self.shiny.append(self.bodies[body.name])
         if body.tag is not None:
             self.tags[body.name] = self._add_tag(body)
         self.set_pose(body.name, body.position[0], body.position[1], body.yaw)
@@ -150,12 +162,13 @@ class Scene:
 
     # -- poses ---------------------------------------------------------------------------------
     def set_pose(self, name: str, x: float, y: float, yaw: float) -> None:
-        """Place body ``name`` with its footprint centred at (x, y), turned by ``yaw`` radians."""
+        """Place body ``name`` with its footprint centred at (x, y), turned by ``yaw`` radians (at
+        its own height: on the floor, or ``bottom`` above it)."""
         if self._poses.get(name) == (x, y, yaw):
             return
         pybullet.resetBasePositionAndOrientation(
             self.bodies[name],
-            [x, y, self.sizes[name][2] / 2.0],
+            [x, y, self.bottoms[name] + self.sizes[name][2] / 2.0],
             _quaternion(yaw),
             physicsClientId=self.client,
         )
@@ -193,10 +206,22 @@ class Scene:
         return found
 
     # -- rendering -----------------------------------------------------------------------------
-    def render(self, camera: PinholeCamera, stamp: float = 0.0) -> Frame:
-        """Render ``camera``'s view with TinyRenderer: flat colours, no shadows."""
-        rgb, depth = render_view(self.client, camera)
+    def render(
+        self,
+        camera: PinholeCamera,
+        stamp: float = 0.0,
+        noise: DepthNoise | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> Frame:
+        """Render ``camera``'s view with TinyRenderer: flat colours, no shadows; depth perfect, or
+        spoilt by ``noise`` with ``rng`` (:mod:`drvs.sim.depth_noise`)."""
+        rgb, depth, shown = render_view(
+            self.client, camera, segmentation=noise is not None and bool(self.shiny)
+        )
         metric = camera.metric_depth(depth)
+        if noise is not None:
+            shiny = np.isin(shown, self.shiny) if shown is not None else None
+            metric = noise.apply(metric, rgb, rng if rng is not None else np.random.default_rng(), shiny)
         return Frame(
             rgb=rgb,
             depth=metric.astype(np.float32),

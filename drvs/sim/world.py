@@ -12,14 +12,15 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from drvs.common.roles import LOCALISATION_ROLES, REQUIRED_ROLES
+from drvs.sim.depth_noise import DepthNoise
+
 KINDS = ('static', 'human')
-ROLES = ('self', 'station', 'obstacle', 'human')
-"""The roles of the single form's colour_models, all required."""
-OWN_ROLES = ('self', 'station')
-"""The roles each robot of ``robots:`` has a model of its own for, in its own ``colour_models``."""
-SHARED_ROLES = ('obstacle', 'human', 'robot')
-"""The roles of a fleet's top-level colour_models; ``robot`` (a model that finds every robot) is
-required with more than one robot, optional otherwise (also in the single form)."""
+ROLES = REQUIRED_ROLES
+"""The roles of the single form's colour_models, all required (:mod:`drvs.common.roles`)."""
+OWN_ROLES = LOCALISATION_ROLES
+"""The roles each robot of ``robots:`` has a model of its own for, in its own ``colour_models``;
+the fleet's top-level ones are :data:`drvs.common.roles.SHARED_ROLES`."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,8 @@ class Tag:
 @dataclass(frozen=True)
 class Body:
     """A box standing on the floor: footprint centre, size [x, y, z] in metres, yaw in radians;
-    the robot and the station may carry a :class:`Tag` on top."""
+    the robot and the station may carry a :class:`Tag` on top. A static object may hang
+    ``bottom`` metres above the floor (a shelf): it spans heights bottom to bottom + size z."""
 
     name: str
     position: tuple[float, float]
@@ -88,6 +90,13 @@ class Body:
     tag: Tag | None = None
     through_obstacles: bool = False
     decoy: bool = False
+    shiny: bool = False
+    bottom: float = 0.0
+
+    @property
+    def top(self) -> float:
+        """Metres above the floor of its top."""
+        return self.bottom + self.size[2]
 
     @property
     def moving(self) -> bool:
@@ -107,7 +116,8 @@ class Camera:
     ``map``). ``waypoints`` and ``speed`` move the camera mount (x, y; height kept).
     ``distortion`` is the lens's plumb_bob model (k1, k2, p1, p2, k3), as in a
     CameraInfo's ``D``; empty for an ideal pinhole. The simulation applies it to the
-    frames it publishes (:mod:`drvs.sim.lens`).
+    frames it publishes (:mod:`drvs.sim.lens`). ``depth_noise``: how its depth images fall short
+    of perfect (:mod:`drvs.sim.depth_noise`); None for perfect depth.
     """
 
     name: str
@@ -119,6 +129,7 @@ class Camera:
     waypoints: tuple[tuple[float, float], ...] = ()
     speed: float = 0.0
     distortion: tuple[float, ...] = ()
+    depth_noise: DepthNoise | None = None
 
     @property
     def moving(self) -> bool:

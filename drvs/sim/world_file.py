@@ -17,17 +17,19 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
 
 import yaml
 
 from drvs.algorithms import AlgorithmError, parse_algorithm
 from drvs.algorithms.tag_images import FAMILIES, FAMILY_NAMES
+from drvs.common.roles import SHARED_ROLES, unknown_role
+from drvs.sim.depth_noise import DepthNoise
 from drvs.sim.world import (
     KINDS,
     OWN_ROLES,
     ROLES,
-    SHARED_ROLES,
     Body,
     Camera,
     FleetRobot,
@@ -62,9 +64,10 @@ FLOOR_KEYS = ('size', 'colour')
 ROBOT_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'speed', 'tag')
 FLEET_ROBOT_KEYS = (*ROBOT_KEYS, 'station', 'colour_models')
 STATION_KEYS = ('name', 'position', 'size', 'yaw', 'colour', 'tag')
-STATIC_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy')
+OBJECT_KEYS = ('name', 'kind', 'position', 'size', 'yaw', 'colour', 'decoy', 'shiny')
+STATIC_KEYS = (*OBJECT_KEYS, 'bottom')
 HUMAN_KEYS = (
-    *STATIC_KEYS,
+    *OBJECT_KEYS,
     'waypoints',
     'speed',
     'loop',
@@ -82,10 +85,24 @@ CAMERA_KEYS = (
     'waypoints',
     'speed',
     'distortion',
+    'depth_noise',
 )
-_ALL_KEYS = frozenset((*TOP_KEYS, *FLOOR_KEYS, *FLEET_ROBOT_KEYS, *HUMAN_KEYS, *TAG_KEYS, *CAMERA_KEYS))
+DEPTH_NOISE_KEYS = tuple(field.name for field in fields(DepthNoise))
+_ALL_KEYS = frozenset(
+    (
+        *TOP_KEYS,
+        *FLOOR_KEYS,
+        *FLEET_ROBOT_KEYS,
+        *HUMAN_KEYS,
+        *STATIC_KEYS,
+        *TAG_KEYS,
+        *CAMERA_KEYS,
+        *DEPTH_NOISE_KEYS,
+    )
+)
 _HUMANS_ONLY = 'applies to humans only: add kind: human to make it walk'
 _TAGS_ONLY = 'only the robot and the station carry a tag'
+_STATICS_ONLY = 'does not apply: only a static object may hang above the floor'
 _FORMS = 'a world has robot: and station: (one robot) or robots: (a list of robots, each with its station)'
 
 
@@ -285,9 +302,9 @@ _BODY_KEYS = {
     'static': (
         STATIC_KEYS,
         'a static object',
-        {**dict.fromkeys(HUMAN_KEYS[len(STATIC_KEYS) :], _HUMANS_ONLY), 'tag': _TAGS_ONLY},
+        {**dict.fromkeys(HUMAN_KEYS[len(OBJECT_KEYS) :], _HUMANS_ONLY), 'tag': _TAGS_ONLY},
     ),
-    'human': (HUMAN_KEYS, 'a human', {'tag': _TAGS_ONLY}),
+    'human': (HUMAN_KEYS, 'a human', {'tag': _TAGS_ONLY, 'bottom': _STATICS_ONLY}),
 }
 
 
@@ -314,7 +331,7 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
     label = report.entry(_label(data, where, role, fleet))
     keys: tuple[str, ...]
     if role == 'object' and kind not in KINDS:  # reported below; any object key may apply
-        keys, what, hints = HUMAN_KEYS, 'an object', {'tag': _TAGS_ONLY}
+        keys, what, hints = (*HUMAN_KEYS, 'bottom'), 'an object', {'tag': _TAGS_ONLY}
     else:
         keys, what, hints = _BODY_KEYS['fleet robot' if fleet and kind == 'robot' else kind]
     entry = _Entry(report, label, data, keys, what, hints)
@@ -337,6 +354,9 @@ def _body(report: Report, data, role: str, where: str, name: str | None, fleet: 
             values[flag] = entry.read(flag, _flag, default=default)
     if role == 'object':
         values['decoy'] = entry.read('decoy', _flag, default=False)
+        values['shiny'] = entry.read('shiny', _flag, default=False)
+        if kind != 'human':
+            values['bottom'] = entry.read('bottom', _bounded, 0.0, 100.0, 'metres', default=0.0)
     else:
         values['tag'] = _tag(entry, size) if 'tag' in data else None
     if entry.broken:
@@ -375,10 +395,58 @@ def _camera(report: Report, data, index: int) -> tuple[str, Camera] | None:
             'distortion',
             f'expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10, got {list(distortion)}',
         )
+    noise = _depth_noise(entry) if 'depth_noise' in data else None
     if entry.broken:
         return None
     width, height = resolution
-    return label, Camera(node_name, position, fov, (width, height), target, up, waypoints, speed, distortion)
+    return label, Camera(
+        node_name, position, fov, (width, height), target, up, waypoints, speed, distortion, noise
+    )
+
+
+def _probability(value) -> float:
+    if not _is_number(value) or not 0 <= value <= 1:
+        raise _expected('a probability 0-1', value)
+    return float(value)
+
+
+def _depth_noise(entry: _Entry) -> DepthNoise | None:
+    """A camera's ``depth_noise``: ``true`` (a Kinect-class sensor's defaults), ``false`` (perfect
+    depth) or a mapping of :class:`DepthNoise`'s fields; problems reported as ``depth_noise.KEY``."""
+    data = entry.data['depth_noise']
+    if isinstance(data, bool):
+        return DepthNoise() if data else None
+    if not isinstance(data, dict):
+        entry.problem(
+            'depth_noise', f'expected true, false or a mapping of {", ".join(DEPTH_NOISE_KEYS)}, got {data!r}'
+        )
+        return None
+    noise = _Entry(entry.report, entry.label, data, DEPTH_NOISE_KEYS, 'depth_noise', prefix='depth_noise.')
+    defaults = DepthNoise()
+    values = {
+        'error': noise.read('error', _bounded, 0.0, 0.1, 'metres at 1 m', default=defaults.error),
+        'edge_jump': noise.read('edge_jump', _bounded, 0.0, 10.0, 'metres', default=defaults.edge_jump),
+        'edge_width': noise.read('edge_width', _count, 0, 20, default=defaults.edge_width),
+        'edge_dropout': noise.read('edge_dropout', _probability, default=defaults.edge_dropout),
+        'dark_level': noise.read('dark_level', _count, 0, 255, default=defaults.dark_level),
+        'dark_dropout': noise.read('dark_dropout', _probability, default=defaults.dark_dropout),
+        'shiny_dropout': noise.read('shiny_dropout', _probability, default=defaults.shiny_dropout),
+        'seed': noise.read('seed', _count, 0, 2**32 - 1, default=None),
+    }
+    entry.broken = entry.broken or noise.broken
+    return None if noise.broken else DepthNoise(**values)
+
+
+def _bounded(value, low: float, high: float, unit: str) -> float:
+    if not _is_number(value) or not low <= value <= high:
+        raise _expected(f'a number {low:g}-{high:g} ({unit})', value)
+    return float(value)
+
+
+def _count(value, low: int, high: int) -> int:
+    if not _is_integer(value, low, high):
+        raise _expected(f'an integer {low}-{high}', value)
+    return value
 
 
 def _models(
@@ -418,13 +486,15 @@ def _top_models(report: Report, data, fleet: bool | None, robots: int) -> dict[s
     if not fleet:
         missing = f'missing (roles: {", ".join(ROLES)})'
         required = dict.fromkeys(ROLES if fleet is not None else (), missing)
-        return _models(report, data, 'colour_models', required, lambda role: None)
+        return _models(report, data, 'colour_models', required, unknown_role)
     missing = f'missing (roles: {", ".join(SHARED_ROLES)})'
     required = dict.fromkeys(SHARED_ROLES[:2], missing)
     if robots > 1:
         required['robot'] = f'missing: with several robots, a model that finds every robot ({missing[9:-1]})'
     own = "with robots:, each robot has its own: put it in the robot's colour_models"
-    return _models(report, data, 'colour_models', required, lambda role: own if role in OWN_ROLES else None)
+    return _models(
+        report, data, 'colour_models', required, lambda role: own if role in OWN_ROLES else unknown_role(role)
+    )
 
 
 def _fleet_robot(report: Report, data, index: int):
@@ -451,7 +521,7 @@ def _fleet_robot(report: Report, data, index: int):
             data['colour_models'],
             f'{label}.colour_models',
             dict.fromkeys(OWN_ROLES, missing),
-            lambda role: None if role in OWN_ROLES else shared,
+            lambda role: None if role in OWN_ROLES else unknown_role(role) or shared,
         )
     return label, robot, station, models
 

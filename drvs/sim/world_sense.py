@@ -91,10 +91,13 @@ def check_floor(report: Report, bodies: Iterable[Labelled], floor: tuple[float, 
 
 
 def check_overlaps(report: Report, bodies: Iterable[Labelled]) -> None:
-    """Bodies at their start poses may touch, not overlap; the later one in the file is named."""
-    shapes = [(label, Polygon(body.footprint())) for label, body in bodies]
-    for i, (label, shape) in enumerate(shapes):
-        for other, other_shape in shapes[:i]:
+    """Bodies at their start poses may touch, not overlap; the later one in the file is named. A
+    body hanging above another (a shelf over a box, over the robot's start) does not overlap it."""
+    shapes = [(label, body, Polygon(body.footprint())) for label, body in bodies]
+    for i, (label, body, shape) in enumerate(shapes):
+        for other, other_body, other_shape in shapes[:i]:
+            if body.bottom >= other_body.top or other_body.bottom >= body.top:
+                continue
             if shape.intersection(other_shape).area > AREA:
                 report.add(
                     label, 'position', f'overlaps {other}: move one of them (bodies may touch, not overlap)'
@@ -114,12 +117,13 @@ def _walk(human: Body) -> list[tuple[float, float]]:
 
 def check_walks(report: Report, humans: Iterable[Labelled], statics: Iterable[Labelled]) -> None:
     """A human's walk keeps clear of the static objects unless it says ``through_obstacles: true``
-    (the simulation walks it through them). Its start pose is :func:`check_overlaps`' business."""
-    boxes = [(label, Polygon(body.footprint())) for label, body in statics]
+    (the simulation walks it through them), or passes under them. Its start pose is
+    :func:`check_overlaps`' business."""
     advice = 'or add through_obstacles: true if it should walk through'
     for label, human in humans:
         if human.through_obstacles:
             continue
+        boxes = [(other, Polygon(body.footprint())) for other, body in statics if body.bottom < human.top]
         inside = set()  # points where it stands in a box: its walks to and from them are not reported
         for i, point in [(None, human.position), *enumerate(human.waypoints)]:
             shape = Polygon(box_footprint(point, human.size, human.yaw))

@@ -91,7 +91,7 @@ def render_floor_tags(
             pybullet.changeVisualShape(
                 body, -1, textureUniqueId=texture_id, rgbaColor=[1, 1, 1, 1], physicsClientId=client
             )
-        rgb, _ = render_view(client, camera)
+        rgb, _, _ = render_view(client, camera)
     finally:
         pybullet.disconnect(physicsClientId=client)
     return rgb

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import rospy
 
 from drvs.algorithms import AlgorithmError, default_algorithms, parse_algorithm, split_algorithm
+from drvs.common.failover import ServerList, moves_on
 from drvs.common.retry import retry_delay
 from drvs.common.settings import Settings
 from drvs.common.status import ACCEPTED, INVALID, UNSUPPORTED, is_temporary
@@ -118,7 +119,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help='one callback from the fusion stage: every object once, with track ids and velocities '
         '(waits for it: --wait is then at least 5 s)',
     )
-    parser.add_argument('--server', default='/drvs/detect_object_boundary', help='the DRVS server service')
+    parser.add_argument(
+        '--server',
+        nargs='+',
+        default=['/drvs/detect_object_boundary'],
+        metavar='SERVICE',
+        help='the DRVS server service; several (replicas on one registry database, docs/registry.md): '
+        'asked in order, the next on UNAVAILABLE or no answer',
+    )
     args = parser.parse_args(argv)
     try:  # the server's own rules: a refusal it would send costs nothing here
         region_of_interest(args.roi)
@@ -141,8 +149,10 @@ def format_callback(request) -> str:
         box = detected.bounding_box
         points = ' '.join(f'({x:.3f}, {y:.3f})' for x, y in polygon_to_points(detected.boundary))
         label = f' {detected.label}' if detected.label else ''
+        height = f', {detected.height:.3f} m high' if detected.height else ''
         lines.append(
             f'  [{i}]{label} bounds x {box.min_x:.3f}..{box.max_x:.3f}, y {box.min_y:.3f}..{box.max_y:.3f}'
+            f'{height}'
         )
         if detected.track_id:
             velocity = detected.velocity
@@ -158,8 +168,10 @@ def format_callback(request) -> str:
     return '\n'.join(lines)
 
 
-def send_with_retries(server: str, request, timeout: float):
-    """Send ``request`` to ``server``, retrying temporary refusals and failed calls for ``timeout`` seconds.
+def send_with_retries(servers: str | list[str], request, timeout: float):
+    """Send ``request`` to the first of ``servers``, retrying temporary refusals and failed calls for
+    ``timeout`` seconds; on ``UNAVAILABLE`` or a failed call the next server is asked
+    (:class:`~drvs.common.failover.ServerList`).
 
     Returns the first final response (ACCEPTED or INVALID), or the last temporary
     refusal once time is up.
@@ -167,23 +179,34 @@ def send_with_retries(server: str, request, timeout: float):
     :raises ServiceCallError: the last call failed and time is up.
     """
     deadline = time.monotonic() + timeout
-    client = ServiceClient(server, DetectObjectBoundary, timeout=min(5.0, timeout))
+    order = ServerList([servers] if isinstance(servers, str) else servers)
+    clients: dict[str, ServiceClient] = {}
     try:
         for attempt in itertools.count():
+            server = order.current
+            if server not in clients:
+                clients[server] = ServiceClient(server, DetectObjectBoundary, timeout=min(5.0, timeout))
             try:
-                reply = client.call(request)
+                reply = clients[server].call(request)
             except ServiceCallError:
                 if time.monotonic() >= deadline:
                     raise
-                wait = 0.0
+                wait, status = 0.0, None
             else:
                 if not is_temporary(reply.status) or time.monotonic() >= deadline:
                     return reply
-                wait = reply.retry_after
+                wait, status = reply.retry_after, reply.status
                 print(f'drvs_ask: {status_name(reply.status)}, retrying: {reply.message}', file=sys.stderr)
+            if moves_on(status) and len(order.servers) > 1:
+                print(
+                    f'drvs_ask: {server} did not serve the request; asking {order.failed()}', file=sys.stderr
+                )
+                if attempt < len(order.servers) - 1:
+                    continue  # another server at once; a full round of failures waits as one would
             time.sleep(max(0.0, min(retry_delay(wait, attempt), deadline - time.monotonic())))
     finally:
-        client.close()
+        for client in clients.values():
+            client.close()
     raise AssertionError('unreachable: the loop returns or raises')
 
 

@@ -135,6 +135,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     parser.add_argument('--json', metavar='FILE', help='also write everything printed to FILE as JSON')
     parser.add_argument(
+        '--reference',
+        metavar='FILE',
+        help="write the image to FILE as the camera's reference of its empty floor for the foreground "
+        "algorithm (the vision system's ~reference); without --tag and --point, do only that",
+    )
+    parser.add_argument(
         '--timeout', type=float, default=10.0, help='seconds for everything taken from topics (default 10)'
     )
     args = parser.parse_args(_attach_values(argv))
@@ -148,7 +154,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         parser.error(f'intrinsics: {missing} missing: give all of --fx --fy --cx --cy, or --camera-info')
     if args.distortion is not None and not given:
         parser.error('--distortion goes with --fx --fy --cx --cy (a camera info carries its own)')
-    if not given and not args.camera_info and not args.topic:
+    args.reference_only = bool(args.reference) and not args.tag and not args.point
+    if not given and not args.camera_info and not args.topic and not args.reference_only:
         parser.error('no intrinsics: give --camera-info FILE|TOPIC, or --fx --fy --cx --cy')
     if not args.name.replace('_', 'a').isalnum() or not args.name[0].isalpha():
         parser.error(f'--name {args.name!r}: a ROS name: letters, digits and _, starting with a letter')
@@ -271,8 +278,31 @@ def calibrate(args: argparse.Namespace) -> int:
             rospy.signal_shutdown('drvs_calibrate done')
 
 
+def write_reference(path: str, image: np.ndarray) -> None:
+    """Write ``image`` (BGR) to ``path`` as the empty floor's reference (``foreground``)."""
+    try:
+        written = cv2.imwrite(path, image)
+    except cv2.error as error:
+        raise CalibrationError(f'--reference {path}: cannot write it: {error.err}') from None
+    if not written:
+        raise CalibrationError(
+            f'--reference {path}: cannot write it (a folder that exists, an image suffix?)'
+        )
+    height, width = image.shape[:2]
+    print(
+        f'drvs_calibrate: wrote the reference of the empty floor, {width}x{height}, to {path}',
+        file=sys.stderr,
+    )
+
+
 def _calibrate(args: argparse.Namespace) -> int:
     deadline = Deadline(args.timeout)
+    if args.reference_only:
+        if args.topic:
+            join_graph(deadline)
+        image = image_from_topic(args.topic, deadline)[0] if args.topic else read_image(args.image)
+        write_reference(args.reference, image)
+        return 0
     intrinsics, info_topic = None, None
     if args.fx is not None:
         intrinsics = Intrinsics.from_values(args.fx, args.fy, args.cx, args.cy, args.distortion or ())
@@ -299,6 +329,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.tag:
         points = tag_points(args.tag, detect_tags(image, intrinsics)) + points
     calibration = solve(points, intrinsics, width, height)
+    if args.reference:
+        write_reference(args.reference, image)
     frame = args.frame or frame_id or intrinsics.frame_id or default_frame(args.name)
     print(calibration.report(args.name, frame))
     for note in calibration.notes:

@@ -40,7 +40,9 @@ class VisionSystemParams(Settings):
         default_text='`render` with `~world`, else `topic`',
     )
     compressed: bool = param(False, '`topic`: subscribe to `image/compressed` instead of `image`')
-    depth: bool = param(False, '`topic`: lift outlines with the aligned depth image `depth`')
+    depth: bool = param(
+        False, '`topic`: lift outlines with the aligned depth image `depth`, and run `elevation` with it'
+    )
     max_range: float = param(
         30.0,
         '`topic`: distance from the camera beyond which the floor is not part of the field of view',
@@ -63,6 +65,12 @@ class VisionSystemParams(Settings):
         check=POSITIVE,
     )
     map_frame: str = param('map', '`topic`: the frame outlines and fields of view are given in')
+    reference: str = param(
+        '',
+        "an image file of the camera's empty floor, `foreground`'s reference (`drvs_calibrate --reference` "
+        'writes one)',
+        default_text='none: `render` renders the empty world; `topic` learns it from its first frames',
+    )
     tag_height: float = param(
         0.0,
         'height above the floor of the plane AprilTags lie on, unless the request (`h=H`) or the world says',

@@ -41,21 +41,26 @@ class FloorObject(NamedTuple):
     bounds: tuple[float, float, float, float]  # min_x, min_y, max_x, max_y
     outline: Outline  # the whole object as reported: ``ordered``, or ring(shape)
     confidence: float = 0.0  # the algorithm's (PixelObject.confidence); 0: unknown
+    height: float = 0.0  # the object's top above the floor (PixelObject.top_height); 0: unknown
 
     @classmethod
-    def of(cls, shape: Polygon, ordered: list | None, label: str, confidence: float = 0.0) -> FloorObject:
+    def of(
+        cls, shape: Polygon, ordered: list | None, label: str, confidence: float = 0.0, height: float = 0.0
+    ) -> FloorObject:
         outline = ordered if ordered is not None else ring(shape)
-        return cls(shape, ordered, label, shape.bounds, outline, confidence)
+        return cls(shape, ordered, label, shape.bounds, outline, confidence, height)
 
 
 class Located(NamedTuple):
     """An object as a request gets it (:func:`in_region`): its outline on the floor in ``map``
-    (clipped to the region, counter-clockwise; a tag's corners whole, in their order), its label
-    and the algorithm's confidence (0-1, 0: unknown; an object clipped keeps its whole one)."""
+    (clipped to the region, counter-clockwise; a tag's corners whole, in their order), its label,
+    the algorithm's confidence (0-1, 0: unknown; an object clipped keeps its whole one) and the
+    height of its top above the floor (metres; 0: unknown)."""
 
     outline: Outline
     label: str
     confidence: float = 0.0
+    height: float = 0.0
 
 
 def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
@@ -111,10 +116,14 @@ def _depth_further(depth: np.ndarray, contour: np.ndarray, cu: int, cv: int) -> 
 def floor_points(frame: Frame, pixel_object: PixelObject) -> np.ndarray:
     """The outline's vertices put on the floor, (N, 3) in ``map``; rays that never meet it left out.
 
-    An object that lies flat at a known ``height`` (a tag) is met with that plane;
-    otherwise each vertex is lifted with the depth image and dropped onto the floor,
-    or, without depth, met with the floor plane.
+    An algorithm that worked out the object's ``footprint`` on the floor gives it as it is; an
+    object that lies flat at a known ``height`` (a tag) is met with that plane; otherwise each
+    vertex is lifted with the depth image and dropped onto the floor, or, without depth, met with
+    the floor plane.
     """
+    if pixel_object.footprint is not None:
+        footprint = np.asarray(pixel_object.footprint, float).reshape(-1, 2)
+        return footprint[np.all(np.isfinite(footprint), axis=1)]
     outline = np.asarray(pixel_object.outline, float)
     pixels = frame.to_camera(outline)
     if pixel_object.height is not None:
@@ -180,18 +189,28 @@ def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[Floo
             if len(points) == len(pixel_object.outline):
                 corners = [(float(x), float(y)) for x, y, _ in points]
                 found.append(
-                    FloorObject.of(Polygon(corners), corners, pixel_object.label, pixel_object.confidence)
+                    FloorObject.of(
+                        Polygon(corners),
+                        corners,
+                        pixel_object.label,
+                        pixel_object.confidence,
+                        pixel_object.top_height,
+                    )
                 )
             continue
         for floor_shape in project_outline(frame, pixel_object):
-            found.append(FloorObject.of(floor_shape, None, pixel_object.label, pixel_object.confidence))
+            found.append(
+                FloorObject.of(
+                    floor_shape, None, pixel_object.label, pixel_object.confidence, pixel_object.top_height
+                )
+            )
     return found
 
 
 def in_region(
     objects: list[FloorObject], region_of_interest: tuple[float, float, float, float]
 ) -> list[Located]:
-    """(outline, label, confidence) of each of :func:`on_floor`'s ``objects`` that intersects
+    """(outline, label, confidence, height) of each of :func:`on_floor`'s ``objects`` that intersects
     ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
 
     An object whose vertex order means something (a tag, corner 0 first) is reported
@@ -200,22 +219,22 @@ def in_region(
     low_x, low_y, high_x, high_y = region_of_interest
     region = None
     found = []
-    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline, confidence in objects:
+    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline, confidence, height in objects:
         # Bounds first: an object wholly outside or wholly inside the region needs no GEOS
         # operation (the intersection was most of a one-camera request's time).
         if max_x < low_x or min_x > high_x or max_y < low_y or min_y > high_y:
             continue
         if low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y:
-            found.append(Located(outline, label, confidence))
+            found.append(Located(outline, label, confidence, height))
             continue
         if region is None:
             region = box(*region_of_interest)
         if ordered is not None:
             if shape.intersects(region):
-                found.append(Located(outline, label, confidence))
+                found.append(Located(outline, label, confidence, height))
             continue
         for part in _polygons(shape.intersection(region)):
-            found.append(Located(ring(part), label, confidence))
+            found.append(Located(ring(part), label, confidence, height))
     return found
 
 
@@ -272,6 +291,11 @@ class FrameCache:
         self._frame: Frame | None = None
         self._ready_at = -math.inf
         self._lock = threading.Lock()
+
+    @property
+    def last(self) -> Frame | None:
+        """The last frame captured, if any (no capture)."""
+        return self._frame
 
     def get(self, arrival: float) -> tuple[Frame, bool]:
         """A frame for a request that arrived at ``arrival``: (frame, whether it was reused)."""

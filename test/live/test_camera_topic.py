@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from drvs.common.status import UNAVAILABLE
+from drvs.common.status import INVALID, UNAVAILABLE, UNSUPPORTED
 from drvs.testing import read_json_lines, wait_for
 from drvs.testing.detect import detect
 from drvs.vision.camera import PinholeCamera
@@ -164,6 +164,75 @@ def test_a_tall_box_is_reported_where_it_stands_with_depth_and_displaced_without
     assert displaced.area > Polygon(BOX).area  # the top is nearer the camera: it looks larger
 
 
+def test_elevation_runs_on_a_depth_topic_and_only_there(graph):
+    """A camera with depth (16UC1 millimetres) registers elevation and reports the box where it
+    stands with its height; a camera without depth does not register it, and says why not."""
+    ros = graph
+    camera = {'box_height': 0.8, 'distortion': [0.0] * 5, 'publish_depth': True, 'depth_encoding': '16UC1'}
+    remap = {**TOPICS, 'depth': '/synthetic_camera/depth'}
+    start(ros, camera=camera, vision={'depth': True}, remap=remap)
+    reply = ask('/drvs/detect_object_boundary', 'elevation:0.1', 'standing')
+    assert (reply.accepted, reply.vision_systems) == (True, 1)
+    outline, callback = outline_of(ros.root / 'callbacks.jsonl', 'standing', ros)
+    assert outline.hausdorff_distance(Polygon(BOX)) <= 0.03
+    assert callback['heights'] == [pytest.approx(0.8, abs=0.01)]
+
+    flat = ros.start_node('nodes/vision_system', name='flat', params={'source': 'topic'}, remap=TOPICS)
+    ros.wait_for_service('/flat/detect_object_boundary', node=flat)
+    reply = ask('/flat/detect_object_boundary', 'elevation', 'no depth')
+    assert (reply.accepted, reply.status) == (False, INVALID)
+    assert reply.message.startswith(
+        "algorithm: unknown NAME 'elevation'; known: apriltag, colour, foreground,"
+    )
+
+
+def test_a_depth_image_of_another_size_refuses_elevation_saying_so_and_colour_goes_on(graph):
+    ros = graph
+    camera = {'box_height': 0.8, 'distortion': [0.0] * 5, 'publish_depth': True, 'depth_size': [320, 240]}
+    start(ros, camera=camera, vision={'depth': True}, remap={**TOPICS, 'depth': '/synthetic_camera/depth'})
+    reply = ask('/cam1/detect_object_boundary', 'elevation', 'misfit')
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message == (
+        'elevation: /synthetic_camera/depth: depth image is 320x240, '
+        'not registered to the 640x480 colour image'
+    )
+    ask('/cam1/detect_object_boundary', BLUE, 'colour')
+    outline, _ = outline_of(ros.root / 'callbacks.jsonl', 'colour', ros)
+    assert outline.intersects(Polygon(BOX))  # without depth the top is met with the floor: displaced
+
+
+def test_foreground_finds_the_box_against_a_reference_file_of_the_empty_floor(graph):
+    """A camera without depth: ``~reference`` (as drvs_calibrate --reference writes it) is the empty
+    floor; the flat box below the camera is where it lies, and elevation is not offered."""
+    import cv2
+
+    ros = graph
+    reference = ros.root / 'cam1_floor.png'
+    cv2.imwrite(str(reference), np.full((480, 640, 3), 230, np.uint8))  # the synthetic camera's floor
+    start(ros, camera={'distortion': [0.0] * 5}, vision={'reference': reference})
+    reply = ask('/drvs/detect_object_boundary', 'foreground', 'anything')
+    assert (reply.accepted, reply.vision_systems) == (True, 1)
+    outline, _ = outline_of(ros.root / 'callbacks.jsonl', 'anything', ros)
+    assert outline.hausdorff_distance(Polygon(BOX)) <= 0.03
+    reply = ask('/drvs/detect_object_boundary', 'elevation', 'standing')
+    assert (reply.accepted, reply.status) == (False, UNSUPPORTED)
+
+
+def test_foreground_without_a_reference_learns_one_while_asked_and_says_so_meanwhile(graph):
+    ros = graph
+    start(ros)
+    reply = ask('/cam1/detect_object_boundary', 'foreground', 'early')
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message.startswith('foreground: learning the reference of the empty floor ('), reply.message
+    # Asked again, it learns from the stream (~motion_rate 5 Hz, 5 frames), then serves.
+    wait_for(
+        lambda: ask('/cam1/detect_object_boundary', 'foreground', 'later').accepted,
+        30,
+        'foreground to learn its reference',
+        on_timeout=ros.describe,
+    )
+
+
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
     ros = graph
     cam1, output, _ = start(ros, vision={'stale_after': 1.0})
@@ -201,6 +270,9 @@ def test_a_topic_vision_system_without_a_pose_on_tf_says_what_is_missing(graph):
         on_timeout=cam1.describe,
     )
     assert cam1.running() and not registered()
+    reply = ask('/cam1/detect_object_boundary', BLUE, 'lost')  # asked directly: refused, saying why
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message.startswith('no calibrated pose: no transform world <- nowhere at '), reply.message
 
 
 def test_source_render_without_a_world_is_refused_with_the_fix(ros):

@@ -62,6 +62,14 @@ SERVER = dict(
         ({'ejected': 1}, WARN, '1 vision system ejected after failed forwards'),
         ({'ejected': 2}, WARN, '2 vision systems ejected after failed forwards'),
         (
+            {
+                'registry': 'postgresql://drvs@db:5432/drvs',
+                'registry_problem': 'registry database unreachable',
+            },
+            ERROR,
+            'registry database unreachable',
+        ),
+        (
             {'left_out': {'/cam3/detect_object_boundary': 'its outlines are 0.8 m from its neighbours'}},
             WARN,
             'left out of fusion: /cam3/detect_object_boundary: its outlines are 0.8 m from its neighbours',
@@ -85,6 +93,7 @@ def test_server_values_name_every_refusal_status():
     )
     assert verdict.values == [
         ('registered vision systems', '2'),
+        ('registry', 'memory'),
         ('pending forwards', '10'),
         ('max pending forwards', '100'),
         ('rate-limited callers', '0'),
@@ -152,6 +161,15 @@ VISION = dict(
         ({'queue_length': 9}, WARN, 'request queue 90% full (9 of 10)'),
         ({'queue_length': 50, 'queue_size': 0}, OK, 'ok'),  # unbounded: never nearly full
         ({'callback_failures_recent': 2}, WARN, '2 of 5 callbacks failed in the last period'),
+        (
+            {
+                'frame_problems': [
+                    'elevation: the depth image has no valid pixel (every one 0, NaN or infinite)'
+                ]
+            },
+            WARN,
+            'elevation: the depth image has no valid pixel (every one 0, NaN or infinite)',
+        ),
         (
             {'registered': False, 'frame_age': 9.0, 'callback_failures_recent': 1, 'callbacks_recent': 1},
             ERROR,

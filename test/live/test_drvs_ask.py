@@ -17,6 +17,7 @@ from drvs.tools.ask import (
     NOTHING_FOUND,
     REFUSED,
     USAGE,
+    format_callback,
     parse_args,
 )
 
@@ -136,3 +137,17 @@ def test_drvs_ask_retries_while_rate_limited(ros: RosHarness):
     result = ros.run(f'{ask}; {ask}', timeout=90)
     assert 'RATE_LIMITED, retrying: rate limited: /asker' in result.stderr, result.stdout + result.stderr
     assert result.stdout.count("message: 'no vision system covers the region of interest'") == 2
+
+
+def test_a_measured_height_is_printed_with_the_bounds():
+    from drvs.ros.conversions import points_to_detected_object
+    from drvs.srv import CallbackCoordinatesRequest
+
+    square = [(1.0, 2.0), (1.5, 2.0), (1.5, 2.5), (1.0, 2.5)]
+    request = CallbackCoordinatesRequest(
+        vision_system='/vs1/detect_object_boundary',
+        objects=[points_to_detected_object(square, height=0.5), points_to_detected_object(square)],
+    )
+    lines = format_callback(request).splitlines()
+    assert lines[1] == '  [0] bounds x 1.000..1.500, y 2.000..2.500, 0.500 m high'
+    assert lines[3] == '  [1] bounds x 1.000..1.500, y 2.000..2.500'  # unknown: not printed

@@ -161,7 +161,7 @@ def test_a_fresh_interpreter_loads_the_plugin_and_leaves_out_the_broken_one(plug
     )
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout) == {
-        'names': ['apriltag', 'colour', 'dark', 'motion'],
+        'names': ['apriltag', 'colour', 'dark', 'elevation', 'foreground', 'motion'],
         'syntax': 'dark:LEVEL',
         'params': 100,
         'shared': 7,
@@ -236,6 +236,7 @@ def test_a_vision_system_runs_the_plugin_and_the_server_checks_its_parameters(pl
     assert (reply.accepted, reply.status, reply.message) == (
         False,
         UNSUPPORTED,
-        "algorithm: no registered vision system runs 'sift'; available: apriltag, colour, dark, motion",
+        "algorithm: no registered vision system runs 'sift'; "
+        'available: apriltag, colour, dark, elevation, foreground, motion',
     )
     assert vs1.running() and server.running()

@@ -237,7 +237,7 @@ def test_rostopic_echo_shows_the_fields_of_the_registry_the_stats_and_the_poses(
     registry = echoed_fields(ros, '/drvs/registry', Registry)
     (entry,) = registry['vision_systems']
     assert (entry['service_name'], entry['provider']) == ('/vs1/detect_object_boundary', '/vs1')
-    assert entry['algorithms'] == ['apriltag', 'colour', 'motion']
+    assert entry['algorithms'] == ['apriltag', 'colour', 'elevation', 'foreground', 'motion']
     assert len(entry['field_of_view']['points']) >= 3 and seconds(entry['lease_expiry']) > 0
 
     stats = echoed_fields(ros, '/vs1/stats', VisionSystemStats)

@@ -49,6 +49,13 @@ NODE_CASES = {
         "vision_system:\n  ~source: must be one of render, topic, got 'file'\n"
         '  ~workers: must be at least 1, got 0',
     ),
+    'vision_system reference': (
+        'nodes/vision_system',
+        'vs_ref',
+        {'world': WORLD, 'camera': 'vs1', 'reference': 'test/worlds/none.png'},
+        'vision_system: ~reference: test/worlds/none.png: cannot read it as an image '
+        '(no such file, or not a format OpenCV reads)',
+    ),
     'world_sim': (
         'nodes/world_sim',
         'ws_bad',

@@ -2,6 +2,7 @@
 
 import json
 import threading
+from pathlib import Path
 
 import pytest
 from shapely.geometry import Polygon
@@ -218,3 +219,39 @@ def test_a_camera_on_a_moving_mount_registers_where_it_looks_and_routing_follows
     wait_for(covered_by(1, far_end), 30, 'the rover to see the far end', on_timeout=ros.describe)
     wait_for(covered_by(0, far_end), 30, 'the rover to leave it again', on_timeout=ros.describe)
     wait_for(covered_by(1, far_end), 30, 'the rover to come back', on_timeout=ros.describe)
+
+
+def test_a_rendering_vision_system_finds_what_stands_on_the_floor_without_its_colour(graph):
+    """elevation on the simulation's noisy depth (the world's ``depth_noise``) and foreground
+    against the render of the empty world: the crate where it stands, elevation with its height."""
+    import yaml
+
+    ros = graph
+    data = yaml.safe_load(Path(WORLD).read_text())
+    data['vision_systems'] = [
+        {
+            'name': 'vs1',
+            'position': [1.0, 1.5, 3.0],
+            'fov_deg': 60,
+            'resolution': [320, 240],
+            'depth_noise': True,
+        }
+    ]
+    world_path = ros.root / 'noisy.yaml'
+    world_path.write_text(yaml.safe_dump(data))
+    start_server(ros, lease=2.0)
+    vs1 = ros.start_node('nodes/vision_system', name='vs1', params={'world': world_path})
+    output = start_recorder(ros)
+    ros.wait_for_service('/vs1/detect_object_boundary', node=vs1)
+    crate = Polygon(box_footprint((1.2, 1.0), (0.4, 0.4), 0.0))
+    region = (0.8, 0.6, 1.6, 1.4)  # around the crate only
+    for request_id, algorithm in (('standing', 'elevation:0.1'), ('different', 'foreground')):
+        reply = request('/vs1/detect_object_boundary', algorithm, region, request_id)
+        assert reply.accepted, reply.message
+        (callback,) = callbacks_for(output, request_id, 1, ros)
+        (outline,) = callback['objects']
+        assert Polygon(outline).intersection(crate).area / Polygon(outline).union(crate).area > (
+            0.8 if algorithm.startswith('elevation') else 0.6
+        ), algorithm
+    standing = callbacks_for(output, 'standing', 1, ros)[0]
+    assert standing['heights'] == [pytest.approx(0.5, abs=0.03)]

@@ -10,7 +10,7 @@ Each line: service (the one called), received (``time.monotonic()`` on arrival:
 the test process's clock on Linux), algorithm, request_id, vision_system, stamp
 (float seconds), caller, objects (a list of outlines, each a list of [x, y]),
 bounding_boxes, and the fused mode's fields: fused, status, message, answered, refused,
-missing, gone, and per object track_ids, velocities, seen_by, labels.
+missing, gone, and per object track_ids, velocities, seen_by, labels, heights.
 """
 
 import json
@@ -63,6 +63,7 @@ def main():
                 'velocities': [[o.velocity.x, o.velocity.y] for o in request.objects],
                 'seen_by': [list(o.seen_by) for o in request.objects],
                 'labels': [o.label for o in request.objects],
+                'heights': [o.height for o in request.objects],
             }
             with lock, open(output, 'a') as handle_:
                 handle_.write(json.dumps(record) + '\n')

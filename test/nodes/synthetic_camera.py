@@ -17,7 +17,8 @@ Published at ``~rate`` Hz, stamped with the time of publication:
 - ``~camera_info`` (sensor_msgs/CameraInfo, plumb_bob);
 - ``~depth`` (sensor_msgs/Image, ``~depth_encoding`` 32FC1 metres or 16UC1 mm, along
   the optical axis; floor and box top, no distortion, aligned pixel for pixel with the
-  colour image) when ``~publish_depth``;
+  colour image; ``~depth_size`` [width, height] resizes it, as a camera whose depth is not
+  registered to its colour) when ``~publish_depth``;
 - tf_static ``map`` -> ``~frame_id``, unless ``~publish_tf`` is false (the camera's pose is
   then somebody else's business, e.g. a calibrated static_transform_publisher).
 
@@ -78,6 +79,8 @@ class SyntheticCamera:
         self.box_colour = get('~box_colour', [0, 0, 220])
         self.rgb = self.draw(box, box_height, get('~floor_colour', [230, 230, 230]), self.box_colour)
         self.depth = self.draw_depth(box, box_height) if self.publish_depth else None
+        if self.depth is not None and get('~depth_size', None):  # a depth image not registered to the colour
+            self.depth = cv2.resize(self.depth, tuple(get('~depth_size')), interpolation=cv2.INTER_NEAREST)
         self.bridge = CvBridge()
         self.paused = threading.Event()
 

@@ -25,6 +25,8 @@ TARGETS = {
     'latency': ['ack_over_plain_call', 'first_callback_over_three_calls'],
     'throughput': ['forwarded_rate_over_raw_rate_fanout1', 'forwarded_rate_over_raw_rate_fanout5'],
     'registry': ['match_1m_p50_us', 'match_1m_moving_over_static', 'register_1m_us'],
+    'registry_db': [],
+    'replicas': [],
     'vision': ['segment_project_800x600_ms'],
     'planner': ['dstar_repair_speedup'],
     'fleet': ['watch_message_ratio'],

@@ -35,7 +35,7 @@ def test_colour_parses_and_formats_back():
             'algorithm: expected NAME[:PARAMS] with NAME a letter then letters, digits or _, '
             "e.g. colour:0,0,150,80,80,255, got '9lives:1'",
         ),
-        ('sift:1', "algorithm: unknown NAME 'sift'; known: apriltag, colour, motion"),
+        ('sift:1', "algorithm: unknown NAME 'sift'; known: apriltag, colour, elevation, foreground, motion"),
         (
             'colour:1,2,3',
             'algorithm: colour PARAMS must be 6 comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, '

@@ -491,7 +491,7 @@ def test_the_same_id_in_another_family_is_another_tag(tmp_path):
         (
             {'objects.0.tag': {'family': 'tag36h11', 'id': 9, 'size': 0.2}},
             "object 'crate'.tag: only the robot and the station carry a tag "
-            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny, bottom)',
         ),
     ],
 )

@@ -121,7 +121,10 @@ def test_bad_callback_service(name, message):
             'algorithm: colour PARAMS must be 6 comma-separated integers RMIN,GMIN,BMIN,RMAX,GMAX,BMAX, '
             "got 1 value(s) in ''",
         ),
-        ('shape:round', "algorithm: unknown NAME 'shape'; known: apriltag, colour, motion"),
+        (
+            'shape:round',
+            "algorithm: unknown NAME 'shape'; known: apriltag, colour, elevation, foreground, motion",
+        ),
         ('colour:0,0,0,300,0,0', 'algorithm: colour RMAX must be in 0-255, got 300'),
     ],
 )

@@ -322,7 +322,7 @@ def change_runs(draw):
     return costs.reshape(rows, cols), draw(cell), draw(cell), rounds
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(change_runs())
 def test_update_cells_in_bulk_matches_vertex_by_vertex_and_a_fresh_plan(run):
     """update_cells repairs a blob of changes with numpy (_update_box); the state must be exactly

@@ -38,6 +38,7 @@ def square(x, y, side=0.5):
                 'boundary',
                 'bounding_box',
                 'label',
+                'height',
                 'track_id',
                 'confidence',
                 'velocity',
@@ -48,6 +49,7 @@ def square(x, y, side=0.5):
                 'geometry_msgs/Polygon',
                 'drvs/BoundingBox',
                 'string',
+                'float32',
                 'uint32',
                 'float32',
                 'geometry_msgs/Vector3',
@@ -175,3 +177,22 @@ def test_status_constants_match_drvs_status(response_class):
     for code, name in status.NAMES.items():
         assert getattr(response_class, name) == code
     assert response_class().status == status.ACCEPTED
+
+
+def test_a_detected_object_carries_its_measured_height_and_defaults_to_unknown():
+    from drvs.ros.conversions import points_to_detected_object
+
+    outline = [(1.0, 2.0), (1.5, 2.0), (1.5, 2.5)]
+    assert round_trip(points_to_detected_object(outline, 'x', 0.5, 0.75)).height == pytest.approx(0.75)
+    assert round_trip(points_to_detected_object(outline)).height == 0.0
+
+
+def test_the_gateway_gives_every_field_of_a_detected_object():
+    from drvs.gateway.routes import SCHEMAS
+    from drvs.ros.conversions import points_to_detected_object
+    from drvs.ros.gateway import object_to_dict
+
+    detected = points_to_detected_object([(1.0, 2.0), (1.5, 2.0), (1.5, 2.5)], height=0.75)
+    data = object_to_dict(detected)
+    assert list(data) == list(DetectedObject.__slots__) == list(SCHEMAS['Object']['properties'])
+    assert data['height'] == pytest.approx(0.75)

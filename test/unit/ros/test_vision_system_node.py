@@ -69,9 +69,9 @@ def clock(monkeypatch):
     return clock
 
 
-def vision_system(clock, *answers, footprint=FLOOR):
+def vision_system(clock, *answers, footprint=FLOOR, **params):
     """A topic vision system, not started: its publishers and the server are fakes."""
-    node = VisionSystemNode(VisionSystemParams(camera='cam1', source='topic'))
+    node = VisionSystemNode(VisionSystemParams(camera='cam1', source='topic', **params))
     node.stats_pub, node.debug_pub = Publisher(), Publisher()
     node._register_client = RegisterService(*answers)
     node.service_name = '/cam1/detect_object_boundary'
@@ -213,3 +213,63 @@ def test_callbacks_carry_the_algorithms_confidence_and_changes_only_ignores_it(c
     clock.now += 0.5
     node._evaluate_watches(node.watches.due(clock()), clock())
     assert [o.confidence for o in clients.requests[-1].objects] == [1.0]
+
+
+def test_elevation_without_usable_depth_is_refused_saying_why_and_reported_until_depth_works(clock):
+    from dataclasses import replace
+
+    from drvs.msg import BoundingBox
+    from drvs.testing.depth import Box, depth_frame
+
+    node = vision_system(clock, depth=True)
+    assert 'elevation' in node.algorithms  # a topic camera with ~depth registers it; without, not:
+    assert 'elevation' not in vision_system(clock).algorithms
+    clients = CallbackClients()
+    node.callbacks._clients, node.callbacks.markers_pub = clients, Publisher()
+    camera = PinholeCamera(eye=(0.0, 0.0, 3.0), target=(0.0, 0.0, 0.0), fov_deg=60, width=160, height=120)
+    good = depth_frame(camera, [Box((0.0, 0.0), (0.4, 0.4, 0.5))], stamp=100.0)
+    holes = replace(good, depth=np.zeros((120, 160), np.float32))
+    frames = [holes]
+    node.source.latest = lambda: frames[-1]
+    node.source.frame = lambda arrival: (frames[-1], False)
+    node.source.unavailable = lambda: None  # frames flow
+    problem = 'elevation: the depth image has no valid pixel (every one 0, NaN or infinite)'
+
+    def ask(request_id):
+        region = BoundingBox(-1.0, -1.0, 1.0, 1.0)
+        request = DetectObjectBoundaryRequest('elevation', region, '/robot/callback', request_id, False)
+        return node._handle_detect(request)
+
+    response = ask('r1')
+    assert (response.accepted, response.status, response.message) == (False, UNAVAILABLE, problem)
+    # A request accepted before the problem showed: no callback, the problem on the health report.
+    node._process(
+        Job(node.algorithms.parse('elevation'), (-1.0, -1.0, 1.0, 1.0), '/robot/callback', 'r0', clock())
+    )
+    assert clients.requests == [] and problem in node.health().message
+    frames.append(good)  # the newest frame works: the problem met before is over
+    assert ask('r2').accepted
+    node._process(
+        Job(node.algorithms.parse('elevation'), (-1.0, -1.0, 1.0, 1.0), '/robot/callback', 'r2', clock())
+    )
+    (request,) = clients.requests
+    assert [round(o.height, 2) for o in request.objects] == [0.5]
+    assert 'elevation' not in node.health().message
+
+
+def test_a_colour_request_does_not_look_at_a_frame_before_it_is_queued(clock):
+    """Only algorithms that can refuse a frame (elevation, foreground) have one decoded at once."""
+    from drvs.msg import BoundingBox
+
+    node = vision_system(clock)
+    node.source.unavailable = lambda: None
+    looked = []
+    node.source.latest = lambda: looked.append(1)
+    request = DetectObjectBoundaryRequest(
+        BLUE, BoundingBox(0.0, 0.0, 1.0, 1.0), '/robot/callback', 'c1', False
+    )
+    assert node._handle_detect(request).accepted
+    assert looked == []
+    request.algorithm = 'foreground'
+    node._handle_detect(request)
+    assert looked == [1]

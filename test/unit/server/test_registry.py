@@ -25,8 +25,9 @@ def clock():
 
 
 @pytest.fixture
-def registry(clock):
-    return Registry(lease=10.0, max_failures=3, clock=clock)
+def registry(clock, new_registry):
+    """A registry of each backend (memory, PostgreSQL: test/unit/server/conftest.py)."""
+    return new_registry(lease=10.0, max_failures=3, clock=clock)
 
 
 def test_register_move_renew_unregister(registry):

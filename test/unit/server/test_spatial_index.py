@@ -141,7 +141,7 @@ def test_matching_with_200000_cameras_equals_brute_force():
 # -- the index's two paths: plain Python where it is sure, GEOS where it is not -------------------
 
 PROPERTY = settings(
-    max_examples=300,
+    max_examples=120,
     deadline=None,
     database=None,  # nothing written into the working tree
     derandomize=True,  # the same examples in every run

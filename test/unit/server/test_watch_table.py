@@ -7,7 +7,6 @@ import pytest
 import drvs.server.watch_table
 from drvs.common.validation import ValidationError
 from drvs.server.dispatch import Busy
-from drvs.server.registry import Registry
 from drvs.server.watch_table import (
     CANCELLED,
     NEW,
@@ -47,8 +46,9 @@ def clock():
 
 
 @pytest.fixture
-def registry(clock):
-    return Registry(lease=1000.0, clock=clock)
+def registry(clock, new_registry):
+    """A registry of each backend (memory, PostgreSQL: test/unit/server/conftest.py)."""
+    return new_registry(lease=1000.0, clock=clock)
 
 
 @pytest.fixture
@@ -297,3 +297,22 @@ def test_at_most_max_watches_stand(table):
     assert watch(table, request_id='w0').change == RENEWED  # renewals still pass
     watch(table, request_id='w0', duration=0.0)
     assert watch(table, request_id='w3').change == STARTED
+
+
+def test_an_adopted_watch_is_forwarded_at_the_next_sync_and_expires_on_its_own_time(table, registry, clock):
+    """A watch taken over from a replica gone silent (docs/registry.md)."""
+    from drvs.server.shared_registry import adopted_watch, stored_watch
+    from drvs.server.watch_table import Watch
+
+    camera(registry, 'cam1', square(0, 0))
+    taken = Watch('/robot', 'w1', COLOUR, 'colour', LEFT, CALLBACK, 0.5, 30.0, False, clock.now + 20.0)
+    assert stored_watch(taken, clock.now).left == 20.0
+    watch = adopted_watch(stored_watch(taken, clock.now), clock.now)
+    assert watch == taken
+    assert table.adopt(watch) is True
+    assert table.adopt(watch) is False  # it stands here already
+    assert sent(table.sync()) == [(NEW, 'cam1', 20.0)]
+    renewed = table.request('/robot', 'w1', COLOUR, 'colour', LEFT, CALLBACK, 0.5, 30.0, False)
+    assert (renewed.change, renewed.duration) == (RENEWED, 30.0)  # the robot renews it here
+    clock.now += 30.0
+    assert sent(table.sync()) == [(WITHDRAWAL, 'cam1', 0.0)]

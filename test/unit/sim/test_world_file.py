@@ -125,13 +125,13 @@ def test_a_camera_lens_is_read_as_plumb_bob_coefficients(tmp_path):
             'objects.0.loop',
             False,
             "object 'box1'.loop: applies to humans only: add kind: human to make it walk "
-            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny, bottom)',
         ),
         (
             'objects.0.wait_for_robot',
             True,
             "object 'box1'.wait_for_robot: applies to humans only: add kind: human to make it walk "
-            '(keys of a static object: name, kind, position, size, yaw, colour, decoy)',
+            '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny, bottom)',
         ),
         ('objects.1.speed', None, "human 'walker'.speed: missing: how fast a human walks, m/s"),
         (

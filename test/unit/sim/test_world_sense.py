@@ -21,7 +21,7 @@ TAGS = yaml.safe_load((REPO / 'worlds/tags.yaml').read_text())
 FLOOR = 'the floor (x 0..7, y 0..5.5)'
 TOUCH = 'move one of them (bodies may touch, not overlap)'
 WALK_THROUGH = 'or add through_obstacles: true if it should walk through'
-STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy)'
+STATIC_KEYS = '(keys of a static object: name, kind, position, size, yaw, colour, decoy, shiny, bottom)'
 ROBOT_KEYS = '(keys of the robot: name, position, size, yaw, colour, speed, tag)'
 UNSEEN = 'would register no field of view: move it over the floor or aim its target at it'
 
@@ -216,7 +216,7 @@ def test_a_file_with_several_problems_names_them_all_in_the_order_of_the_file(tm
             {'vision_systems.0.fov': 60},
             [
                 "vision_system 'vs1'.fov: unknown key; did you mean fov_deg? (keys of a vision system: name, "
-                'position, fov_deg, resolution, target, up, waypoints, speed, distortion)'
+                'position, fov_deg, resolution, target, up, waypoints, speed, distortion, depth_noise)'
             ],
         ),
         (
@@ -401,3 +401,27 @@ def test_check_world_without_files_prints_its_usage_and_exits_2():
     assert 'Traceback' not in result.stderr
     result = check_world('--help')
     assert result.returncode == 0 and result.stdout.startswith('usage: drvs_check_world')
+
+
+def test_check_world_refuses_a_role_the_robot_never_asks_for_with_the_nearest_one(tmp_path):
+    """A typo beside the right role (``humna:`` and ``human:``) must not pass as ok."""
+    typo = tmp_path / 'typo.yaml'
+    typo.write_text(yaml.safe_dump(edited(OBSTACLES, **{'colour_models.humna': 'colour:150,0,0,255,80,80'})))
+    result = check_world(typo)
+    assert (result.returncode, result.stdout) == (
+        2,
+        f'{typo}: colour_models.humna: unknown role; did you mean human? '
+        '(roles: self, station, obstacle, human, robot)\n',
+    )
+
+
+def test_a_fleets_roles_are_checked_against_the_robots_too(tmp_path):
+    fleet = yaml.safe_load((REPO / 'worlds/crossing.yaml').read_text())
+    fleet['colour_models']['obstacel'] = fleet['colour_models']['obstacle']
+    first = fleet['robots'][0]
+    first['colour_models']['slef'] = first['colour_models']['self']
+    roles = '(roles: self, station, obstacle, human, robot)'
+    assert sorted(problems_of(tmp_path, fleet)) == [
+        f'colour_models.obstacel: unknown role; did you mean obstacle? {roles}',
+        f"robots {first['name']!r}.colour_models.slef: unknown role; did you mean self? {roles}",
+    ]

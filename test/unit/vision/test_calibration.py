@@ -513,3 +513,23 @@ def test_without_a_master_the_topic_mode_fails_at_once(tmp_path):
         r'set ROS_MASTER_URI \(source scripts/env\.sh\), or use --image FILE\n',
         result.stderr,
     )
+
+
+def test_the_reference_of_the_empty_floor_is_written_for_foreground(tmp_path):
+    """``--reference FILE`` without floor points only writes the image (no intrinsics needed); the
+    foreground algorithm reads it back as it was."""
+    from drvs.algorithms.foreground import read_reference
+
+    image = blank_image(tmp_path, (160, 120))
+    reference = tmp_path / 'cam1_floor.png'
+    result = run('--image', image, '--reference', reference)
+    assert (result.returncode, result.stdout) == (0, '')
+    assert (
+        result.stderr == f'drvs_calibrate: wrote the reference of the empty floor, 160x120, to {reference}\n'
+    )
+    assert read_reference(str(reference)).shape == (120, 160, 3)
+    result = run('--image', image, '--reference', tmp_path / 'no' / 'such.png')
+    assert result.returncode == 2
+    assert result.stderr.startswith(
+        f'drvs_calibrate: error: --reference {tmp_path}/no/such.png: cannot write it'
+    )
