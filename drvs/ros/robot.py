@@ -16,8 +16,10 @@ import rospy
 from geometry_msgs.msg import PoseStamped, Twist, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
 
+from drvs.common.failover import ServerList
 from drvs.common.guard import RESTART, SHUTDOWN
 from drvs.common.health import Health, robot_health
+from drvs.common.status import UNAVAILABLE
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
 from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
@@ -113,16 +115,13 @@ class BlindRobot:
         self._tracking = False  # whether the robot's own region is around it (else the whole floor)
         self._done = threading.Event()
         self._last_path: list | None = None
-        self._client: ServiceClient | None = None
+        self.servers = ServerList(params.services)  # guarded by _requests
+        self._clients: dict[str, ServiceClient] = {}  # by server; only the requester thread calls them
         self.node = NodeScaffold(self.health, COUNTERS, hardware_id=rospy.get_name().rsplit('/', 1)[-1])
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
-        if self.watching:
-            service = (self.params.watch_service, WatchObjectBoundary)
-        else:
-            service = (self.params.drvs_service, DetectObjectBoundary)
-        self._client = ServiceClient(*service, self.params.request_timeout)
+        self._service_class = WatchObjectBoundary if self.watching else DetectObjectBoundary
         self.cmd_vel = rospy.Publisher('~cmd_vel', Twist, queue_size=1)
         self.path_pub = rospy.Publisher('~path', Path, queue_size=1, latch=True)
         self.map_pub = rospy.Publisher('~map', OccupancyGrid, queue_size=1, latch=True)
@@ -144,7 +143,7 @@ class BlindRobot:
             self.robot_radius,
             self.speed,
             'watching with' if self.watching else 'polling',
-            service[0],
+            ', then '.join(self.servers.servers),
             self.params.rate,
         )
 
@@ -165,8 +164,8 @@ class BlindRobot:
             self._requests.notify_all()
         self.node.join(self.params.request_timeout + STOP_GRACE + 5.0)  # the requester cancels first
         self._halt()
-        if self._client is not None:
-            self._client.close()
+        for client in self._clients.values():
+            client.close()
         controller = self.controller
         state, reason = (controller.state, controller.reason) if controller is not None else (None, '')
         end = mission_end(self.params.once, self.node.failure, state, reason)
@@ -247,11 +246,13 @@ class BlindRobot:
             callback_service=self.callback_service,
             request_id=request_id,
         )
+        server = self._server()
         try:
-            response = self._client.call(message)
+            response = self._clients[server].call(message)
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
+                self._server_failed(server, str(error))
             self.node.log_throttled(
                 'call failed',
                 rospy.logwarn,
@@ -263,6 +264,7 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
+            self._server_answered(server, response)
         self._answered(role, f'request {request_id}', outcome, response)
 
     def _send_watch(self, call: WatchCall) -> None:
@@ -282,11 +284,13 @@ class BlindRobot:
             duration=call.duration,
             changes_only=True,
         )
+        server = self._server()
         try:
-            response = self._client.call(message)
+            response = self._clients[server].call(message)
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
+                self._server_failed(server, str(error))
             if call.duration:
                 self.node.log_throttled(
                     'call failed',
@@ -304,8 +308,37 @@ class BlindRobot:
             outcome = self.schedule.on_response(
                 role, response.status, response.duration, response.retry_after, response.message
             )
+            self._server_answered(server, response)
         if call.duration:
             self._answered(role, f'watch {request_id} ({call.reason})', outcome, response)
+
+    def _server(self) -> str:
+        """The server to ask now, with a client for it."""
+        with self._requests:
+            server = self.servers.current
+        if server not in self._clients:
+            self._clients[server] = ServiceClient(server, self._service_class, self.params.request_timeout)
+        return server
+
+    def _server_failed(self, server: str, why: str) -> None:
+        """``server`` gave no answer or ``UNAVAILABLE`` (the caller holds ``_requests``): the next
+        calls go to the next server, and the watches standing are renewed there at once."""
+        move = self.servers.fail(server, why)
+        if move is None:
+            return
+        if move.line:
+            rospy.logwarn('blind robot: %s', move.line)
+        if self.watching:
+            self.schedule.reissue()
+
+    def _server_answered(self, server: str, response) -> None:
+        """(The caller holds ``_requests``.)"""
+        if response.status == UNAVAILABLE:
+            self._server_failed(server, f'UNAVAILABLE: {response.message}')
+            return
+        line = self.servers.answered(server)
+        if line:
+            rospy.loginfo('blind robot: %s', line)
 
     def _answered(self, role: str, what: str, outcome, response) -> None:
         """Act on the outcome of an answered call (``what`` names it in the log)."""
@@ -402,6 +435,8 @@ class BlindRobot:
             fix_age=None if fix is None else max(now - fix.stamp, 0.0),
             fix_timeout=self.params.fix_timeout,
             coverage=covered,
+            server=self.servers.current,
+            server_moves=self.servers.moves,
         )
 
     def _publish(self, now: float) -> None:
