@@ -2,7 +2,8 @@
 
 A client asks the server in use; on ``UNAVAILABLE`` or no answer within its deadline it moves
 to the next in the list (after the last, the first again); other refusals (``BUSY``,
-``RATE_LIMITED``) are retried at the same server after their ``retry_after``. No ROS here.
+``RATE_LIMITED``) are retried at the same server after their ``retry_after``. The nodes' ``~servers``
+names the servers by namespace (:func:`namespaces`, :func:`service_names`). No ROS here.
 Replicas: docs/registry.md.
 
 >>> servers = ServerList(['/drvs/detect_object_boundary', '/drvs_b/detect_object_boundary'])
@@ -17,10 +18,13 @@ Replicas: docs/registry.md.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
+from drvs.common.settings import ParamError
 from drvs.common.status import UNAVAILABLE
+from drvs.common.validation import ValidationError, global_ros_name
 
-__all__ = ['ServerList', 'moves_on']
+__all__ = ['Move', 'ServerList', 'moves_on', 'namespace_of', 'namespaces', 'service_names']
 
 
 def moves_on(status: int | None) -> bool:
@@ -28,8 +32,68 @@ def moves_on(status: int | None) -> bool:
     return status is None or status == UNAVAILABLE
 
 
+def namespaces(text: str) -> list[str]:
+    """The server namespaces of a ``~servers`` parameter: global ROS names separated by commas (a YAML
+    list is given joined so), in order.
+
+    >>> namespaces('/drvs, /drvs_b')
+    ['/drvs', '/drvs_b']
+    >>> namespaces('')
+    Traceback (most recent call last):
+    drvs.common.settings.ParamError: ~servers: empty; name at least one DRVS server namespace, e.g. [/drvs]
+
+    :raises ParamError: naming ``~servers``: empty, a name that is not a global ROS name, or one twice.
+    """
+    names = [name.strip() for name in text.split(',')]
+    if names == ['']:
+        raise ParamError('servers', 'empty; name at least one DRVS server namespace, e.g. [/drvs]')
+    for name in names:
+        if not name:
+            raise ParamError('servers', f'an empty name in {text!r}; expected namespaces such as /drvs')
+        try:
+            global_ros_name('servers', name)
+        except ValidationError as error:
+            problem = str(error).removeprefix('servers: ')
+            raise ParamError('servers', f'{problem}; expected namespaces such as /drvs') from None
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ParamError('servers', f'{", ".join(repeated)} named more than once')
+    return names
+
+
+def namespace_of(service: str) -> str:
+    """The namespace of a server's service: where ``~servers`` defaults from.
+
+    >>> namespace_of('/drvs/register_vision_service'), namespace_of('/register_vision_service')
+    ('/drvs', '/')
+    """
+    return service.rsplit('/', 1)[0] or '/'
+
+
+def service_names(servers: Sequence[str], service: str) -> list[str]:
+    """The service of each server namespace: ``service``'s base name in it.
+
+    >>> service_names(['/drvs', '/drvs_b', '/'], '/drvs/watch_object_boundary')
+    ['/drvs/watch_object_boundary', '/drvs_b/watch_object_boundary', '/watch_object_boundary']
+    """
+    base = service.rsplit('/', 1)[-1]
+    return [f'{namespace.rstrip("/")}/{base}' for namespace in servers]
+
+
+@dataclass(frozen=True)
+class Move:
+    """A client moved to ``server`` (now in use); ``line``: what to log of it ('' for nothing)."""
+
+    server: str
+    line: str
+
+
 class ServerList:
     """The servers a client may ask, in order, and the one in use.
+
+    Not thread-safe: one thread asks, or the caller holds a lock. The lines to log: each move
+    once while some server answered since the last full round of failures; then one line
+    when a whole round failed, and silence until a server answers again (one line then).
 
     :raises ValueError: an empty list, or a name twice.
     """
@@ -44,6 +108,7 @@ class ServerList:
         self.servers = names
         self._index = 0
         self.moves = 0  # times a failure moved to the next server
+        self._failures = 0  # failures in a row since a server last answered
 
     @property
     def current(self) -> str:
@@ -53,4 +118,31 @@ class ServerList:
         """The server in use gave ``UNAVAILABLE`` or no answer: the next one (now in use)."""
         self._index = (self._index + 1) % len(self.servers)
         self.moves += 1
+        self._failures += 1
         return self.current
+
+    def fail(self, server: str, why: str) -> Move | None:
+        """``server`` gave ``UNAVAILABLE`` or no answer (``why`` says how): the move to the next
+        one, or None when there is no other server or ``server`` is no longer the one in use
+        (a call to it that was still out)."""
+        if len(self.servers) == 1 or server != self.current:
+            return None
+        quiet = self._failures >= len(self.servers)
+        new = self.failed()
+        if quiet:
+            return Move(new, '')
+        if self._failures == len(self.servers):
+            return Move(
+                new,
+                f'no DRVS server answers ({", ".join(self.servers)}; {server}: {why}); '
+                f'still trying them in turn, now {new}',
+            )
+        return Move(new, f'DRVS server {server} did not serve ({why}); asking {new} from now on')
+
+    def answered(self, server: str) -> str:
+        """``server`` answered (anything but ``UNAVAILABLE``): what to log ('' unless it ends a
+        whole round of failures)."""
+        if server != self.current:
+            return ''
+        quiet, self._failures = self._failures >= len(self.servers), 0
+        return f'DRVS server {server} answers again' if quiet and len(self.servers) > 1 else ''

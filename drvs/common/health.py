@@ -228,6 +228,8 @@ def vision_system_health(
     registration_error: str = '',
     watches: int = 0,
     frame_problems: Sequence[str] = (),
+    server: str = '',
+    server_moves: int = 0,
 ) -> Health:
     """A vision system's health from its registration, its camera feed, its queue and its callbacks.
 
@@ -249,6 +251,9 @@ def vision_system_health(
     :param frame_problems: why algorithms cannot work on the camera's frames now (an
         ``elevation`` without usable depth, a ``foreground`` without its reference), one
         message each, naming the algorithm.
+    :param server: the server (registration service) it registers through now, and
+        ``server_moves`` the times it moved to the next of ``~servers``; values, no rule
+        (shown when ``server`` is given).
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -315,6 +320,7 @@ def vision_system_health(
         ('callback failures (last period)', str(callback_failures_recent)),
         ('last registration refusal', registration_status or 'none'),
         ('last registration error', registration_error or 'none'),
+        *_server_values(server, server_moves),
     ]
     return _verdict(problems, values)
 
@@ -325,6 +331,8 @@ def robot_health(
     fix_age: float | None,
     fix_timeout: float,
     coverage: bool,
+    server: str = '',
+    server_moves: int = 0,
 ) -> Health:
     """A robot's health from its controller state, the age of its newest fix and its coverage.
 
@@ -334,6 +342,8 @@ def robot_health(
     :param fix_age: seconds since the newest fix of the robot; None when there is none yet.
     :param fix_timeout: seconds without a fix after which the robot fails.
     :param coverage: whether some registered vision system sees the robot.
+    :param server: the server (service) it asks now, and ``server_moves`` the times it moved
+        to the next of ``~servers``; values, no rule (shown when ``server`` is given).
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -372,5 +382,11 @@ def robot_health(
         ('fix age (s)', _seconds(fix_age)),
         ('fix timeout (s)', _seconds(fix_timeout)),
         ('covered', _yes(coverage)),
+        *_server_values(server, server_moves),
     ]
     return _verdict(problems, values)
+
+
+def _server_values(server: str, moves: int) -> list[tuple[str, str]]:
+    """The values of a client of several servers: the one in use, and its moves."""
+    return [('DRVS server', server), ('server moves', str(moves))] if server else []

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from drvs.common.failover import namespace_of, namespaces, service_names
 from drvs.common.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, one_of, param
 from drvs.robot.mapping import MAX_CELLS
 
@@ -201,4 +202,24 @@ class RobotParams(Settings):
     watch_service: str = param(
         '/drvs/watch_object_boundary', "the DRVS server's WatchObjectBoundary (with `watch`)"
     )
+    servers: str | None = param(
+        None,
+        'the DRVS servers (replicas on one registry database) by namespace, in order, e.g. '
+        '`[/drvs, /drvs_b]`: it asks the first, and moves to the next on `UNAVAILABLE` or no answer '
+        'within `~request_timeout`, its watches renewed there at once (each: the service in use in it)',
+        default_text='the namespace of `~watch_service` (`watch`) or `~drvs_service` (`poll`): `[/drvs]`',
+        separator=',',
+    )
     once: bool = param(False, 'exit when done: 0 at the station, 1 otherwise')
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.servers is not None:
+            namespaces(self.servers)
+
+    @property
+    def services(self) -> list[str]:
+        """The service it asks (``~watch_service`` or ``~drvs_service``) on each server of ``~servers``."""
+        service = self.watch_service if self.requests == WATCH else self.drvs_service
+        servers = [namespace_of(service)] if self.servers is None else namespaces(self.servers)
+        return service_names(servers, service)

@@ -149,6 +149,12 @@ class WatchSchedule(Scheduled):
         """The mission is over: cancel every watch that may stand, then send nothing more."""
         self.stopped = True
 
+    def reissue(self) -> None:
+        """The robot moved to another server (``~servers``): every standing watch is renewed now,
+        there (a role whose call failed keeps its retry delay)."""
+        for watch in self._watches.values():
+            watch.renew_at = -math.inf
+
     # -- the requester's side ----------------------------------------------------------------
     @property
     def standing(self) -> int:

@@ -16,8 +16,10 @@ import rospy
 from geometry_msgs.msg import PoseStamped, Twist, Vector3
 from nav_msgs.msg import OccupancyGrid, Path
 
+from drvs.common.failover import ServerList
 from drvs.common.guard import RESTART, SHUTDOWN
 from drvs.common.health import Health, robot_health
+from drvs.common.status import UNAVAILABLE
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
 from drvs.robot.asked import AskedFloor
@@ -139,16 +141,13 @@ class BlindRobot:
         self._done = threading.Event()
         self._last_path: list | None = None
         self._refused: tuple[str, str] | None = None  # (role, message): a fused answer every camera refused
-        self._client: ServiceClient | None = None
+        self.servers = ServerList(params.services)  # guarded by _requests
+        self._clients: dict[str, ServiceClient] = {}  # by server; only the requester thread calls them
         self.node = NodeScaffold(self.health, COUNTERS, hardware_id=rospy.get_name().rsplit('/', 1)[-1])
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
-        if self.watching:
-            service = (self.params.watch_service, WatchObjectBoundary)
-        else:
-            service = (self.params.drvs_service, DetectObjectBoundary)
-        self._client = ServiceClient(*service, self.params.request_timeout)
+        self._service_class = WatchObjectBoundary if self.watching else DetectObjectBoundary
         self.cmd_vel = rospy.Publisher('~cmd_vel', Twist, queue_size=1)
         self.path_pub = rospy.Publisher('~path', Path, queue_size=1, latch=True)
         self.map_pub = rospy.Publisher('~map', OccupancyGrid, queue_size=1, latch=True)
@@ -171,7 +170,7 @@ class BlindRobot:
             self.speed,
             'watching with' if self.watching else 'polling',
             ' fused' if self.fused else '',
-            service[0],
+            ', then '.join(self.servers.servers),
             self.params.rate,
         )
 
@@ -192,8 +191,8 @@ class BlindRobot:
             self._requests.notify_all()
         self.node.join(self.params.request_timeout + STOP_GRACE + 5.0)  # the requester cancels first
         self._halt()
-        if self._client is not None:
-            self._client.close()
+        for client in self._clients.values():
+            client.close()
         controller = self.controller
         state, reason = (controller.state, controller.reason) if controller is not None else (None, '')
         end = mission_end(self.params.once, self.node.failure, state, reason)
@@ -302,11 +301,13 @@ class BlindRobot:
             request_id=request_id,
             fused=fused_role(self.params, role),
         )
+        server = self._server()
         try:
-            response = self._client.call(message)
+            response = self._clients[server].call(message)
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
+                self._server_failed(server, str(error))
             self.node.log_throttled(
                 'call failed',
                 rospy.logwarn,
@@ -318,6 +319,7 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
+            self._server_answered(server, response)
         self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest, sent)
 
     def _send_watch(self, call: WatchCall) -> None:
@@ -339,11 +341,13 @@ class BlindRobot:
             changes_only=True,
             fused=fused_role(self.params, role),
         )
+        server = self._server()
         try:
-            response = self._client.call(message)
+            response = self._clients[server].call(message)
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
+                self._server_failed(server, str(error))
             if call.duration:
                 self.node.log_throttled(
                     'call failed',
@@ -361,10 +365,39 @@ class BlindRobot:
             outcome = self.schedule.on_response(
                 role, response.status, response.duration, response.retry_after, response.message
             )
+            self._server_answered(server, response)
         if call.duration:
             self._answered(
                 role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest, sent
             )
+
+    def _server(self) -> str:
+        """The server to ask now, with a client for it."""
+        with self._requests:
+            server = self.servers.current
+        if server not in self._clients:
+            self._clients[server] = ServiceClient(server, self._service_class, self.params.request_timeout)
+        return server
+
+    def _server_failed(self, server: str, why: str) -> None:
+        """``server`` gave no answer or ``UNAVAILABLE`` (the caller holds ``_requests``): the next
+        calls go to the next server, and the watches standing are renewed there at once."""
+        move = self.servers.fail(server, why)
+        if move is None:
+            return
+        if move.line:
+            rospy.logwarn('blind robot: %s', move.line)
+        if self.watching:
+            self.schedule.reissue()
+
+    def _server_answered(self, server: str, response) -> None:
+        """(The caller holds ``_requests``.)"""
+        if response.status == UNAVAILABLE:
+            self._server_failed(server, f'UNAVAILABLE: {response.message}')
+            return
+        line = self.servers.answered(server)
+        if line:
+            rospy.loginfo('blind robot: %s', line)
 
     def _answered(self, role: str, what: str, outcome, response, region, sent: float) -> None:
         """Act on the outcome of an answered call over ``region``, sent at ``sent`` (``what``
@@ -473,6 +506,8 @@ class BlindRobot:
             fix_age=None if fix is None else max(now - fix.stamp, 0.0),
             fix_timeout=self.params.fix_timeout,
             coverage=covered,
+            server=self.servers.current,
+            server_moves=self.servers.moves,
         )
 
     def _publish(self, now: float) -> None:

@@ -23,6 +23,7 @@ from sensor_msgs.msg import Image
 from drvs.algorithms import Algorithm, AlgorithmError, FrameProblem, Parsed, load_algorithms
 from drvs.algorithms.foreground import read_reference
 from drvs.common.counters import PeriodCounts
+from drvs.common.failover import ServerList
 from drvs.common.health import Health, vision_system_health
 from drvs.common.settings import ParamError
 from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
@@ -122,19 +123,18 @@ class VisionSystemNode:
             params.min_watch_period, params.max_watch_duration, params.change_tolerance, params.max_watches
         )
         self.registration = Registration(params.move_threshold, params.retry_period)
+        self.servers = ServerList(params.register_services)  # guarded by the registration thread
+        self._register_clients: dict[str, ServiceClient] = {}
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
         self.stats_pub = rospy.Publisher('~stats', VisionSystemStats, queue_size=1, latch=True)
         self.debug_pub = rospy.Publisher('~debug_image', Image, queue_size=1)
-        self.callbacks.start(markers_topic(rospy.resolve_name(self.params.register_service)))
+        self.callbacks.start(markers_topic(rospy.resolve_name(self.servers.current)))
         self.source.start()
         foreground = self.algorithms.get('foreground')
         if foreground is not None and not self.params.reference and hasattr(self.source, 'empty_floor'):
             foreground.set_reference(self.source.empty_floor())  # the simulation knows its empty floor
-        self._register_client = ServiceClient(
-            self.params.register_service, RegisterVisionService, timeout=self.params.register_timeout
-        )
         for index in range(self.params.workers):
             self.node.spawn(self._work, f'worker{index}')
         service = rospy.Service('~detect_object_boundary', DetectObjectBoundary, self._handle_detect)
@@ -171,7 +171,8 @@ class VisionSystemNode:
             self._publish_stats()  # the final counts
         except rospy.ROSException as error:  # publishing after shutdown
             rospy.logdebug('could not publish the final stats: %s', error)
-        self._register_client.close()
+        for client in self._register_clients.values():
+            client.close()
         self.callbacks.close()
         self.source.close()
 
@@ -449,12 +450,22 @@ class VisionSystemNode:
             algorithms=self.algorithms.names(),
         )
         what = attempt.what
+        server = self.servers.current
+        client = self._register_clients.get(server)
+        if client is None:
+            client = ServiceClient(server, RegisterVisionService, timeout=self.params.register_timeout)
+            self._register_clients[server] = client
         try:
-            response = self._register_client.call(request)
+            response = client.call(request)
         except ServiceCallError as error:
             rospy.logwarn_throttle(10.0, '%s: waiting for the DRVS server (%s)', rospy.get_name(), error)
             self.registration.unanswered(attempt, str(error))
+            self._server_failed(server, str(error))
             return
+        if response.status == UNAVAILABLE:
+            self._server_failed(server, f'UNAVAILABLE: {response.message}')
+        else:
+            self._server_answered(server)
         if response.status != ACCEPTED:
             self.registration.refused(attempt, response.status, response.message, response.retry_after)
             if is_temporary(response.status):
@@ -485,6 +496,18 @@ class VisionSystemNode:
             )
         self._count(registrations=1)
 
+    def _server_failed(self, server: str, why: str) -> None:
+        """``server`` gave no answer or ``UNAVAILABLE``: the next registration goes to the next server
+        (which registers this vision system anew if it does not know it: every call carries it all)."""
+        move = self.servers.fail(server, why)
+        if move is not None and move.line:
+            rospy.logwarn('%s: %s', rospy.get_name(), move.line)
+
+    def _server_answered(self, server: str) -> None:
+        line = self.servers.answered(server)
+        if line:
+            rospy.loginfo('%s: %s', rospy.get_name(), line)
+
     # -- introspection -------------------------------------------------------------------------
     def health(self) -> Health:
         """The node's health now, for ``/diagnostics``; the callbacks counted since the last call."""
@@ -502,6 +525,8 @@ class VisionSystemNode:
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=registration.status,
             registration_error=registration.error,
+            server=self.servers.current,
+            server_moves=self.servers.moves,
             frame_problems=[
                 *([self.source.pose_problem] if self.source.pose_problem else []),
                 *([f'depth left out: {self.source.depth_problem}'] if self.source.depth_problem else []),

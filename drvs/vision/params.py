@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from drvs.common.failover import namespace_of, namespaces, service_names
 from drvs.common.settings import (
     NON_NEGATIVE,
     POSITIVE,
@@ -136,6 +137,14 @@ class VisionSystemParams(Settings):
         check=NON_NEGATIVE,
     )
     register_service: str = param('/drvs/register_vision_service', "the DRVS server's RegisterVisionService")
+    servers: str | None = param(
+        None,
+        'the DRVS servers (replicas on one registry database) by namespace, in order, e.g. '
+        '`[/drvs, /drvs_b]`: it registers and renews through the first, and moves to the next on '
+        '`UNAVAILABLE` or no answer within `~register_timeout` (each: `~register_service` in it)',
+        default_text="`~register_service`'s namespace: `[/drvs]`",
+        separator=',',
+    )
     register_timeout: float = param(2.0, 'limit on one registration call', unit='s', check=POSITIVE)
     retry_period: float = param(
         1.0,
@@ -161,7 +170,15 @@ class VisionSystemParams(Settings):
         if not self.source:  # frozen: the resolved default is set once, here
             object.__setattr__(self, 'source', 'render' if self.world else 'topic')
         super().__post_init__()
+        if self.servers is not None:
+            namespaces(self.servers)
         if self.source == 'render' and not self.world:
             raise ParamError(
                 'world', 'required with ~source render (or use ~source topic and a camera topic)'
             )
+
+    @property
+    def register_services(self) -> list[str]:
+        """The registration service of each server in ``~servers``, in order."""
+        servers = [namespace_of(self.register_service)] if self.servers is None else namespaces(self.servers)
+        return service_names(servers, self.register_service)

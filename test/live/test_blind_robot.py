@@ -314,3 +314,15 @@ def test_bad_parameters_are_refused_with_the_reason(ros, params, message):
     robot = ros.start_node('nodes/blind_robot', name='robot', params={'world': world, **params})
     assert wait_exit(ros, robot, 30) == 2
     assert message in robot.log()
+
+
+@pytest.mark.parametrize('mode', ['watch', pytest.param('poll', marks=pytest.mark.slow)])
+def test_a_server_that_is_not_there_sends_the_robot_to_the_next_of_its_servers(ros, mode):
+    """~servers (docs/registry.md, "Replicas"): the first is gone, one failed call moves it on for good."""
+    world = write_world(ros.root, [], start=NEAR)
+    robot_params = {'requests': mode, 'servers': ['/gone', '/drvs']}
+    _, robot, output = start(ros, world, robot_params=robot_params)
+    assert wait_exit(ros, robot, 60) == 0, ros.describe()
+    status = final_truth(ros, output, 'arrived')['status']
+    assert status['failed_requests'] == 1 and status['refused'] == {}, status
+    assert {e['status'] for e in calls(output)} == {'ACCEPTED'}

@@ -241,6 +241,20 @@ def test_robot_values():
     ]
 
 
+def test_a_client_of_several_servers_shows_the_one_in_use_and_its_moves():
+    """~servers (docs/registry.md, "Replicas"): values, no rule."""
+    server = {'server': '/drvs_b/watch_object_boundary', 'server_moves': 1}
+    verdict = robot_health(**ROBOT, **server)
+    assert verdict.level == OK and verdict.values[-2:] == [
+        ('DRVS server', '/drvs_b/watch_object_boundary'),
+        ('server moves', '1'),
+    ]
+    assert vision_system_health(**VISION, server='/drvs/register_vision_service').values[-2:] == [
+        ('DRVS server', '/drvs/register_vision_service'),
+        ('server moves', '0'),
+    ]
+
+
 # -- bad input -------------------------------------------------------------------------------------
 
 

@@ -1,12 +1,16 @@
-"""The order in which a client asks several DRVS servers (replicas)."""
+"""The order in which a client asks several DRVS servers (replicas), and the nodes' ``~servers``."""
 
 import doctest
 
 import pytest
 
 import drvs.common.failover
-from drvs.common.failover import ServerList, moves_on
+from drvs.common.failover import Move, ServerList, moves_on, namespace_of, namespaces, service_names
+from drvs.common.settings import ParamError
 from drvs.common.status import BUSY, RATE_LIMITED, UNAVAILABLE
+from drvs.robot.params import RobotParams
+from drvs.ros.params import read_params
+from drvs.vision.params import VisionSystemParams
 
 
 def test_doctests():
@@ -35,3 +39,82 @@ def test_bad_lists_are_refused(names, message):
     with pytest.raises(ValueError) as caught:
         ServerList(names)
     assert str(caught.value) == message
+
+
+def test_a_move_is_logged_once_a_whole_round_once_and_the_answer_after_it():
+    servers = ServerList(['/a', '/b'])
+    move = servers.fail('/a', 'connection refused')
+    assert move == Move('/b', 'DRVS server /a did not serve (connection refused); asking /b from now on')
+    assert servers.fail('/a', 'timed out') is None  # a call to /a still out: already moved
+    assert servers.answered('/b') == ''
+    assert servers.fail('/b', 'UNAVAILABLE: no database').line.startswith('DRVS server /b did not serve')
+    round_failed = servers.fail('/a', 'connection refused')  # /b, then /a: a whole round
+    assert round_failed == Move(
+        '/b', 'no DRVS server answers (/a, /b; /a: connection refused); still trying them in turn, now /b'
+    )
+    assert [servers.fail(servers.current, 'refused').line for _ in range(3)] == ['', '', '']  # quiet
+    assert servers.current == '/a'
+    assert servers.answered('/b') == '' and servers.answered('/a') == 'DRVS server /a answers again'
+    assert servers.fail('/a', 'refused').line.startswith('DRVS server /a did not serve')
+    assert servers.moves == 7
+
+
+def test_one_server_never_moves():
+    servers = ServerList(['/drvs/watch_object_boundary'])
+    assert servers.fail('/drvs/watch_object_boundary', 'connection refused') is None
+    assert (servers.moves, servers.answered('/drvs/watch_object_boundary')) == (0, '')
+
+
+def test_servers_parameter_names_namespaces():
+    assert namespaces('/drvs,/drvs_b') == ['/drvs', '/drvs_b']
+    assert service_names(namespaces('/drvs, /site/b'), '/drvs/register_vision_service') == [
+        '/drvs/register_vision_service',
+        '/site/b/register_vision_service',
+    ]
+    assert namespace_of('/drvs_b/watch_object_boundary') == '/drvs_b'
+
+
+@pytest.mark.parametrize(
+    'text, message',
+    [
+        ('', '~servers: empty; name at least one DRVS server namespace, e.g. [/drvs]'),
+        ('/a,,/b', "~servers: an empty name in '/a,,/b'; expected namespaces such as /drvs"),
+        (
+            'drvs',
+            "~servers: 'drvs' is not a global ROS name (it must start with /); expected namespaces "
+            'such as /drvs',
+        ),
+        ('/a b', "~servers: '/a b' is not a valid ROS name; expected namespaces such as /drvs"),
+        ('/a,/a', '~servers: /a named more than once'),
+    ],
+)
+def test_bad_servers_parameters_are_refused_by_name(text, message):
+    with pytest.raises(ParamError) as caught:
+        namespaces(text)
+    assert str(caught.value) == message
+
+
+@pytest.mark.parametrize('settings', [VisionSystemParams, RobotParams])
+def test_the_nodes_refuse_bad_servers_and_default_to_todays_server(settings):
+    required = {'camera': 'vs1'} if settings is VisionSystemParams else {'world': 'w.yaml'}
+    services = (lambda p: p.register_services) if settings is VisionSystemParams else (lambda p: p.services)
+    assert services(settings(**required)) == [
+        '/drvs/register_vision_service' if settings is VisionSystemParams else '/drvs/watch_object_boundary'
+    ]
+    assert len(services(settings(**required, servers='/drvs,/drvs_b'))) == 2
+    for bad, message in [
+        ([], '~servers: empty; name at least one DRVS server namespace, e.g. [/drvs]'),
+        ([1, 2], '~servers: expected a string or a list of strings, got [1, 2]'),
+        ({'a': 1}, "~servers: expected a string, got {'a': 1}"),
+    ]:
+        with pytest.raises(ParamError) as caught:
+            read_params(
+                settings,
+                get=lambda name, default, bad=bad: {**required, 'servers': bad}.get(name[1:], default),
+            )
+        assert str(caught.value) == message
+
+
+def test_a_polling_robot_asks_detect_object_boundary_on_each_server():
+    params = RobotParams(world='w.yaml', requests='poll', servers='/drvs,/drvs_b')
+    assert params.services == ['/drvs/detect_object_boundary', '/drvs_b/detect_object_boundary']

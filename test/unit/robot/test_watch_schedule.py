@@ -362,3 +362,16 @@ def test_watches_send_ten_times_fewer_calls_than_polling(roles):
     cancels = drain(watches, clock, respond=lambda s, call: s.on_response(call.role, ACCEPTED))
     assert sorted(call.role for call in cancels) == sorted(roles)
     assert polls.sent >= 10 * watches.sent, (polls.sent, watches.sent)
+
+
+def test_after_a_move_to_another_server_every_standing_watch_is_renewed_at_once(schedule, clock):
+    """~servers: the robot moved on; its watches stand at the new server without waiting for their renewal."""
+    schedule.post({'self': whole(), 'station': whole()})
+    drain(schedule, clock)
+    clock.now += 1.0
+    call = schedule.next_request()
+    assert call is None and schedule.wait_time() > 3.0
+    schedule.reissue()
+    assert schedule.wait_time() == 0.0
+    assert [(c.role, c.reason) for c in drain(schedule, clock)] == [('self', RENEW), ('station', RENEW)]
+    assert schedule.next_request() is None and schedule.wait_time() > 3.0

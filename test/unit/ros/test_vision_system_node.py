@@ -73,7 +73,8 @@ def vision_system(clock, *answers, footprint=FLOOR, **params):
     """A topic vision system, not started: its publishers and the server are fakes."""
     node = VisionSystemNode(VisionSystemParams(camera='cam1', source='topic', **params))
     node.stats_pub, node.debug_pub = Publisher(), Publisher()
-    node._register_client = RegisterService(*answers)
+    node._register_client = RegisterService(*answers)  # the test's handle on the first server's
+    node._register_clients = {node.servers.current: node._register_client}
     node.service_name = '/cam1/detect_object_boundary'
     node.registration = Registration(0.01, 1.0, clock=clock, rng=lambda: 0.0)
     node.source.footprint = lambda: footprint
@@ -123,6 +124,26 @@ def test_a_clean_stop_unregisters(clock):
     node._register(farewell)
     assert node._register_client.requests[-1].field_of_view.points == []
     assert node.node.counters['registrations'] == 2 and not node.registration.report().registered
+
+
+def test_no_answer_or_unavailable_moves_to_the_next_server_which_registers_it(clock):
+    """~servers: registered through /drvs, which stops answering; renewed through /drvs_b, then back."""
+    node = vision_system(clock, answer(), ServiceCallError('connection refused'), servers='/drvs,/drvs_b')
+    second = RegisterService(answer(), answer(UNAVAILABLE, 'the registry database is unreachable'))
+    node._register_clients['/drvs_b/register_vision_service'] = second
+    node._registration_tick()
+    clock.now += 5.0  # half the lease: renewed, but /drvs does not answer
+    node._registration_tick()
+    assert node.servers.current == '/drvs_b/register_vision_service'
+    clock.now += 0.2  # the retry, at once through /drvs_b (every call carries the registration)
+    node._registration_tick()
+    assert [r.service_name for r in second.requests] == ['/cam1/detect_object_boundary']
+    assert node.registration.report().registered
+    values = dict(node.health().values)
+    assert (values['DRVS server'], values['server moves']) == ('/drvs_b/register_vision_service', '1')
+    clock.now += 5.0
+    node._registration_tick()  # UNAVAILABLE: the next one again
+    assert (node.servers.current, node.servers.moves) == ('/drvs/register_vision_service', 2)
 
 
 @pytest.mark.parametrize(
