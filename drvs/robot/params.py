@@ -137,7 +137,7 @@ class RobotParams(Settings):
     people_horizon: float = param(
         2.0,
         "how far ahead people's motion is predicted: a velocity that would bring the robot closer to "
-        'someone moving than `~robot_radius`, their half size and 15 cm within it is not taken (the '
+        'someone moving than `~robot_radius`, their half size and 25 cm within it is not taken (the '
         'robot slows, stops, steps aside or back instead)',
         unit='s',
         check=POSITIVE,

@@ -34,7 +34,7 @@ STILL = 0.15
 """m/s: a robot slower than this stands still (the map holds it; nobody starts giving way to it)."""
 YIELD_MARGIN = 0.2
 """Metres beyond the sum of two robots' radii under which their predicted closest approach is too close."""
-PERSON_MARGIN = 0.15
+PERSON_MARGIN = 0.25
 """Metres beyond the robot's radius and a person's under which the robot comes too close to them."""
 
 
