@@ -138,7 +138,7 @@ class RobotParams(Settings):
         2.0,
         "how far ahead people's motion is predicted: a velocity that would bring the robot closer to "
         'someone moving than `~robot_radius`, their half size and 25 cm within it is not taken (the '
-        'robot slows, stops, steps aside or back instead)',
+        'robot slows, stops or backs along the way it came instead)',
         unit='s',
         check=POSITIVE,
     )
