@@ -16,11 +16,10 @@ from shapely.geometry import Point as Point2
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-ROLES = ('self', 'station', 'obstacle', 'human')
-"""The roles every robot has a model for; a world may add others (``robot``), all obstacles."""
-LOCALISATION_ROLES = ('self', 'station')
-FLEET_ROLE = 'robot'
-"""The role whose model finds every robot of a fleet, this one too (:func:`cut_bodies`)."""
+from drvs.common.roles import FLEET_ROLE as FLEET_ROLE  # re-exported: drvs/robot/mapping.py imports it here
+from drvs.common.roles import LOCALISATION_ROLES
+from drvs.common.roles import REQUIRED_ROLES as ROLES
+
 MIN_PIECE = 0.01
 """m²: what is left of an outline once the robot's own body is cut out, smaller than this, is
 noise (the edge of its own blob in a frame older than its fix), not another body."""
