@@ -12,7 +12,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 from shapely.geometry import Point, Polygon
@@ -105,7 +105,11 @@ class MapBuilder:
     :param floor_size: the floor (x, y) in metres; the grid covers it.
     :param robot_size: the robot's footprint (x, y), to cut its body out where its tag says.
     :param robot_radius: inflation of obstacles in the grid.
-    :param obstacle_roles: the roles whose outlines are obstacles (``robot``: cut, not dropped).
+    :param obstacle_roles: the roles whose outlines are obstacles.
+    :param cut_roles: those of them whose outlines have the robot's body and station cut out, not
+        dropped when mostly covered by them: the fleet's ``robot`` and the class-agnostic
+        algorithms' (:data:`~drvs.robot.perception.CLASS_AGNOSTIC`), whose region around the robot
+        may be a real obstacle merged with it.
     :param ttl: a source not heard from for this long is forgotten
         (:class:`~drvs.robot.occupancy.ObstacleMemory`).
     :param linger: an empty report keeps a source's outlines this long more.
@@ -123,9 +127,11 @@ class MapBuilder:
         linger: float,
         map_period: float,
         resolution: float | None = None,
+        cut_roles: Collection[str] = (FLEET_ROLE,),
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
+        self.cut_roles = frozenset(cut_roles)
         self.linger = linger
         self.grid = CostGrid(GridSpec(floor_size, resolution or grid_resolution(floor_size)), robot_radius)
         self.trail = OwnTrail(robot_radius + BODY_MARGIN)
@@ -149,13 +155,18 @@ class MapBuilder:
         if body is not None:
             bodies.append(body)
         bodies.append(self.trail.update(now, fix))
+        # elevation's and foreground's regions lose the robot and station grown by the margin: their
+        # outline of them, a frame older or inset by half a cell, would leave a rim.
+        grown = [*bodies, *(f.outline.buffer(BODY_MARGIN) for f in (fix, station) if f is not None)]
         objects = []
         for role in self.obstacle_roles:
             merged = merge_outlines(o for (r, _), outlines in sources.items() if r == role for o in outlines)
-            # The fleet's model finds this robot too, as one blob with another robot it touches:
-            # its own body is cut out of those blobs, not the blob dropped.
+            # The fleet's model (and elevation, foreground) finds this robot too, as one blob with
+            # another robot or an obstacle it touches: its own body is cut out, not the blob dropped.
             objects.extend(
-                cut_bodies(merged, bodies) if role == FLEET_ROLE else exclude_bodies(merged, bodies)
+                cut_bodies(merged, bodies if role == FLEET_ROLE else grown)
+                if role in self.cut_roles
+                else exclude_bodies(merged, bodies)
             )
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)

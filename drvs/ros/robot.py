@@ -97,6 +97,7 @@ class BlindRobot:
             linger=params.obstacle_ttl,
             map_period=params.map_period,
             resolution=params.resolution,
+            cut_roles=self.perception.cut_roles,
         )
         self.settings = ControllerSettings(
             speed=self.speed,
