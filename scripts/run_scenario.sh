@@ -2,7 +2,7 @@
 # Run one DRVS scenario end to end, without roslaunch.
 #
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
-#                                 [--camera-source render|topic] [--requests poll|watch] [--rviz]
+#                                 [--camera-source render|topic|colour] [--requests poll|watch] [--rviz]
 #                                 [--fused true|false] [--record] [--hosts] [--robot-link RATE]
 #                                 [--gateway [--gateway-bind HOST:PORT]]
 #   scripts/run_scenario.sh --help
@@ -32,6 +32,8 @@
 # cameras: one sim_camera per camera publishes its rendered colour and depth
 # images, CameraInfo and tf, and each vision_system runs with _source:=topic on
 # them (default: render, each vision system renders its own view on demand).
+# --camera-source colour is topic with colour-only cameras: each vision_system reads
+# the colour image alone (no _depth), so it cannot run elevation (worlds/depot_foreground.yaml).
 # With --requests poll or watch, every robot runs with _requests:= that (default:
 # the robot's own default, standing requests). With --fused true or false, every
 # robot runs with _fused:= that (default: the robot's own default, fused answers).
@@ -58,7 +60,7 @@ set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
 CAMERAS_PER_HOST=8
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic|colour] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
 help() {
   cat <<EOF
 $synopsis
@@ -70,7 +72,8 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
   --external-master      use the master at \$ROS_MASTER_URI (default http://127.0.0.1:11311), not a private one
   --stay                 keep DRVS and the robots running after the robots are done, until Ctrl-C
   --camera-source SOURCE render: each vision system renders its own view (default); topic: a sim_camera
-                         per camera publishes images, CameraInfo and tf, which its vision system reads
+                         per camera publishes images, CameraInfo and tf, which its vision system reads;
+                         colour: topic, but the vision systems read no depth (cameras without depth)
   --requests MODE        every robot asks DRVS by poll (one-shot requests) or watch (standing requests);
                          default: the robot's own default (watch)
   --fused true|false     every robot asks for fused answers (one callback per request or watch period)
@@ -123,7 +126,7 @@ done
 [ -n "$world" ] || usage
 [ -f "$world" ] || fail "world file $world not found"
 [ -z "$timeout" ] || [[ "$timeout" =~ ^[0-9]+([.][0-9]+)?$ ]] || fail "--timeout needs seconds, got $timeout"
-[[ "$source" =~ ^(render|topic)$ ]] || fail "--camera-source is render or topic, got $source"
+[[ "$source" =~ ^(render|topic|colour)$ ]] || fail "--camera-source is render, topic or colour, got $source"
 [[ "$requests" =~ ^(|poll|watch)$ ]] || fail "--requests is poll or watch, got $requests"
 [[ "$fused" =~ ^(|true|false)$ ]] || fail "--fused is true or false, got $fused"
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
@@ -308,16 +311,40 @@ wait_for(subscribed, 20.0, 'rosbag record to subscribe', interval=0.1)
 EOF
 fi
 
+# Colour-only cameras: foreground's reference, each camera's view of the empty floor, rendered
+# as drvs_calibrate --reference would photograph it (learnt from the first frames, it would
+# hold the obstacles standing there).
+if [ "$source" = colour ]; then
+  "$py" - "$world" "$out" <<'EOF' || fail "could not render the cameras' empty floor into $out"
+import sys
+from dataclasses import replace
+
+import cv2
+
+from drvs.sim.scene import Scene
+from drvs.sim.world_file import load_world
+from drvs.vision.camera import PinholeCamera
+
+world = load_world(sys.argv[1])
+with Scene(replace(world, robots=(), objects=())) as scene:
+    for config in world.vision_systems:
+        rgb = scene.render(PinholeCamera.from_config(config)).rgb
+        cv2.imwrite(f'{sys.argv[2]}/reference_{config.name}.png', cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+EOF
+fi
+
 # world_sim first: under simulated time it drives the clock the others wait for.
 start world_sim sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
 start drvs_server master "$py" "$root/nodes/drvs_server" __name:=drvs
 i=0
 for camera in $cameras; do
   host=cameras$((i / CAMERAS_PER_HOST + 1)) i=$((i + 1))
-  if [ "$source" = topic ]; then
+  if [ "$source" != render ]; then
+    depth=$([ "$source" = topic ] && echo true || echo false)
     start "sim_$camera" "$host" "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
-    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=true \
-      image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
+    reference=$([ "$source" = colour ] && echo "$out/reference_$camera.png" || true)
+    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=$depth \
+      _reference:="$reference" image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
   else
     start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
   fi

@@ -15,6 +15,7 @@ from __future__ import annotations
 import difflib
 
 __all__ = [
+    'FLEET_ROLE',
     'LOCALISATION_ROLES',
     'REQUIRED_ROLES',
     'ROBOT_ROLES',
@@ -32,6 +33,9 @@ finds every robot, and is required with more than one."""
 ROBOT_ROLES = ('self', 'station', 'obstacle', 'human', 'robot')
 """Every role a robot asks about; a world naming another is refused. A new kind of obstacle the
 robot should ask about is added here (and to worlds/README.md)."""
+FLEET_ROLE = 'robot'
+"""The role whose model finds every robot of a fleet, the asking one too (the robot cuts its own
+body out of what it finds: drvs/robot/perception.py ``cut_bodies``)."""
 
 
 def unknown_role(role: object) -> str | None:

@@ -122,7 +122,7 @@ class MapBuilder:
     :param floor_size: the floor (x, y) in metres; the grid covers it.
     :param robot_size: the robot's footprint (x, y), to cut its body out where its tag says.
     :param robot_radius: inflation of obstacles in the grid.
-    :param obstacle_roles: the roles whose outlines are obstacles (``robot``: cut, not dropped).
+    :param obstacle_roles: the roles whose outlines are obstacles.
     :param ttl: a source not heard from for this long is forgotten
         (:class:`~drvs.robot.occupancy.ObstacleMemory`).
     :param linger: an empty report keeps a source's outlines this long more.
@@ -133,6 +133,10 @@ class MapBuilder:
     :param caution: metres beyond ``robot_radius`` where cells cost more (:class:`CostGrid`).
     :param fused: the roles DRVS fuses (one object each already); the outlines of the others
         from every source are merged into objects (:func:`merge_outlines`).
+    :param cut_roles: the obstacle roles whose outlines have the robot's body and station cut out,
+        not dropped when they overlap them: the fleet's ``robot`` and the class-agnostic
+        algorithms' (:data:`~drvs.robot.perception.CLASS_AGNOSTIC`), whose region around the robot
+        may be a real obstacle merged with it.
     """
 
     def __init__(
@@ -149,9 +153,11 @@ class MapBuilder:
         horizon: float = 0.0,
         fused: Collection[str] = (),
         caution: float = 0.0,
+        cut_roles: Collection[str] = (FLEET_ROLE,),
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
+        self.cut_roles = frozenset(cut_roles)
         self.linger = linger
         spec = GridSpec(floor_size, resolution or grid_resolution(floor_size))
         self.grid = CostGrid(spec, robot_radius, caution)
@@ -221,6 +227,9 @@ class MapBuilder:
         if position is not None:
             bodies.append(Point(position).buffer(self.trail.radius))
         own = unary_union(bodies)
+        # elevation's and foreground's regions lose the robot and station grown by the margin: their
+        # outline of them, a frame older or inset by half a cell, would leave a rim.
+        grown = [*bodies, *(f.outline.buffer(BODY_MARGIN) for f in (fix, station) if f is not None)]
         objects: list[Polygon] = []
         moving_people: dict[str, list[Mover]] = {}
         for role in self.obstacle_roles:
@@ -232,10 +241,11 @@ class MapBuilder:
             ]
             if role not in self.fused:  # one vision system's outlines each: one polygon per object
                 found = [(o, None) for o in merge_outlines(o for o, _ in found)]
-            if role == FLEET_ROLE:
-                # The fleet's model finds this robot too, as one blob with another robot it touches:
-                # its own body is cut out of those blobs, not the blob dropped.
-                pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], bodies)]
+            if role in self.cut_roles:
+                # The fleet's model (and elevation, foreground) finds this robot too, as one blob with
+                # another robot or an obstacle it touches: its own body is cut out, not the blob dropped.
+                cut = bodies if role == FLEET_ROLE else grown
+                pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], cut)]
             else:
                 pieces = [(o, v) for o, v in found if exclude_bodies([o], bodies)]
             if role in STATIC_ROLES:

@@ -16,14 +16,17 @@ from shapely.geometry import Point as Point2
 from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
-ROLES = ('self', 'station', 'obstacle', 'human')
-"""The roles every robot has a model for; a world may add others (``robot``), all obstacles."""
-LOCALISATION_ROLES = ('self', 'station')
-FLEET_ROLE = 'robot'
-"""The role whose model finds every robot of a fleet, this one too (:func:`cut_bodies`)."""
+from drvs.common.roles import FLEET_ROLE as FLEET_ROLE  # re-exported: drvs/robot/mapping.py imports it here
+from drvs.common.roles import LOCALISATION_ROLES
+from drvs.common.roles import REQUIRED_ROLES as ROLES
+
 MIN_PIECE = 0.01
 """m²: what is left of an outline once the robot's own body is cut out, smaller than this, is
 noise (the edge of its own blob in a frame older than its fix), not another body."""
+CLASS_AGNOSTIC = ('elevation', 'foreground')
+"""Algorithms that find everything standing on the floor, the robot and its station too: the
+robot cuts its body and station out of their outlines (:func:`cut_bodies`), as a region that
+touches it may be a real obstacle merged with it."""
 STATIC_ROLES = ('obstacle',)
 """Obstacle roles whose objects stand still; the others (``human``, ``robot``) move."""
 WATCH = 0
@@ -304,6 +307,13 @@ class Perception:
             raise PerceptionError(f'colour_models: missing role(s) {", ".join(missing)}')
         self.algorithms = dict(algorithms)
         self.obstacle_roles = tuple(role for role in self.algorithms if role not in LOCALISATION_ROLES)
+        self.cut_roles = tuple(
+            role
+            for role in self.obstacle_roles
+            if role == FLEET_ROLE or self.algorithms[role].split(':', 1)[0] in CLASS_AGNOSTIC
+        )
+        """The obstacle roles whose outlines have the robot's body cut out (``robot``, and those
+        asked with a :data:`CLASS_AGNOSTIC` algorithm)."""
         self.requests = RequestBook(tuple(self.algorithms), watch_prefix)
         self.watch_keep = watch_keep
         self.fused = frozenset(fused)

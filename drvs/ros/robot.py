@@ -113,6 +113,7 @@ class BlindRobot:
             horizon=params.traffic_horizon,
             fused=fused,
             caution=params.obstacle_clearance,
+            cut_roles=self.perception.cut_roles,
         )
         rank = sorted(robot.name for robot in world.robots).index(me.name)
         self.yielding = Yielding(

@@ -51,13 +51,19 @@ def detected_object(track: TrackView) -> DetectedObject:
         velocity=Vector3(track.velocity[0], track.velocity[1], 0.0),
         stationary=track.stationary,
         seen_by=list(track.seen_by),
+        height=track.height,
     )
 
 
 def observations(objects) -> list[Observation]:
     """A callback's drvs/DetectedObject list as the tracker's observations."""
     return [
-        Observation(tuple(polygon_to_points(o.boundary)), label=o.label, confidence=float(o.confidence))
+        Observation(
+            tuple(polygon_to_points(o.boundary)),
+            label=o.label,
+            confidence=float(o.confidence),
+            height=float(o.height),
+        )
         for o in objects
     ]
 

@@ -273,6 +273,8 @@ class VisionSystemNode:
                 if cancelled:
                     rospy.loginfo('%s: watch %r cancelled', rospy.get_name(), request.request_id)
                 return WatchObjectBoundaryResponse(accepted=True, status=ACCEPTED)
+            if terms.algorithm.algorithm.streaming:  # as for a request: foreground learns while refused
+                self._streaming_until = max(self._streaming_until, now + self.params.motion_window)
             problem = self.source.unavailable() or self._frame_problem(terms.algorithm, now)
             if problem:
                 raise Refusal(UNAVAILABLE, problem, self.params.retry_period)

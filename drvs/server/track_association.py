@@ -33,6 +33,7 @@ class Seen:
 
     stamp: float
     shape: Shape
+    height: float = 0.0  # metres above the floor of the object's top; 0: not measured
 
 
 @dataclass(eq=False)
@@ -63,6 +64,10 @@ class Track:
         """Half the diagonal of the smallest of its cameras' outlines: how big the object is at most."""
         return min(seen.shape.radius for seen in self.seen.values())
 
+    def height(self, age: float) -> float:
+        """The highest top its fresh outlines measured (:meth:`fresh`), metres; 0 when none did."""
+        return max((seen.height for seen in self.fresh(age)), default=0.0)
+
     def fresh(self, age: float) -> list[Seen]:
         """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
         return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
@@ -92,6 +97,7 @@ class Candidate:
     label: str
     confidence: float
     pieces: list[Shape] = field(default_factory=list)
+    height: float = 0.0  # the highest of its pieces' tops, metres; 0: not measured
 
 
 @dataclass(frozen=True)
@@ -168,6 +174,7 @@ def associate(
             result.fresh.append(candidate)
         else:
             joined[col].pieces.append(candidate.shape)
+            joined[col].height = max(joined[col].height, candidate.height)
     for col, candidate in joined.items():
         if candidate.pieces:
             candidate.pieces.insert(0, candidate.shape)

@@ -45,6 +45,8 @@ class Observation:
     """A tag's identity (e.g. ``'tag36h11:3'``): one track per label, never two labels in a track."""
     confidence: float = 0.0
     """The camera's own, 0..1 (0: unknown)."""
+    height: float = 0.0
+    """Metres above the floor of the object's top, when the algorithm measures it (0: unknown)."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,9 @@ class TrackView:
     label: str
     last_seen: float
     """Capture stamp of the newest frame that updated it."""
+    height: float = 0.0
+    """Metres: the highest top its cameras' recent outlines measured (as fresh as those :attr:`outline`
+    may be made of); 0 when none measured one."""
 
 
 class Tracker:
@@ -258,7 +263,11 @@ class Tracker:
                 confidence = 0.0
             label = getattr(observation, 'label', '')
             label = label if isinstance(label, str) else str(label)
-            candidates.append(Candidate(shape, label, min(1.0, max(0.0, float(confidence)))))
+            height = getattr(observation, 'height', 0.0)
+            if not isinstance(height, int | float) or not math.isfinite(height) or height < 0:
+                height = 0.0
+            confidence = min(1.0, max(0.0, float(confidence)))
+            candidates.append(Candidate(shape, label, confidence, height=float(height)))
         return candidates, skipped
 
     def _end_unseen(self, stamp: float) -> None:
@@ -285,7 +294,7 @@ class Tracker:
         track.motion.update(stamp, centroid, self._sigma2(candidate.shape))
         seen = track.seen.get(camera)
         if seen is None or seen.stamp <= stamp:
-            track.seen[camera] = Seen(stamp, candidate.shape)
+            track.seen[camera] = Seen(stamp, candidate.shape, candidate.height)
         track.last_seen = max(track.last_seen, stamp)
         track.fused = None
         track.evidence = 1 - (1 - track.evidence) * (1 - self._evidence(candidate.confidence))
@@ -315,7 +324,7 @@ class Tracker:
         shape = candidate.shape
         motion = Motion(self._noise, self._window, stamp, shape.centroid, self._sigma2(shape))
         track = Track(self._next_id, candidate.label, motion, self._evidence(candidate.confidence), stamp)
-        track.seen[camera] = Seen(stamp, shape)
+        track.seen[camera] = Seen(stamp, shape, candidate.height)
         self._next_id += 1
         self._tracks[track.track_id] = track
         if track.label:
@@ -378,7 +387,8 @@ class Tracker:
             vx, vy = track.velocity()
             # A stationary object's outlines stay valid however old: a shelf wider than one camera's
             # view is the union of every camera's part, whenever each was seen (within the coast time).
-            outline = track.outline(at, s.coast if track.stationary else s.outline_age, EXTENDED)
+            outline_age = s.coast if track.stationary else s.outline_age
+            outline = track.outline(at, outline_age, EXTENDED)
             if region is not None and not _overlaps(outline, region):
                 continue
             freshness = min(1.0, 1.0 - age / s.coast)
@@ -393,6 +403,7 @@ class Tracker:
                     tuple(sorted(c for c, seen in track.seen.items() if seen.stamp >= since)),
                     track.label,
                     track.last_seen,
+                    track.height(outline_age),
                 )
             )
         return views

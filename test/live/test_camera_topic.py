@@ -233,6 +233,32 @@ def test_foreground_without_a_reference_learns_one_while_asked_and_says_so_meanw
     )
 
 
+def test_a_foreground_watch_refused_while_learning_starts_the_learning_too(graph):
+    """The robot asks for obstacles with a watch: its refusal must feed the stream as a request's does."""
+    from drvs.ros.service_client import ServiceClient
+    from drvs.srv import WatchObjectBoundary, WatchObjectBoundaryRequest
+
+    def watch():
+        message = WatchObjectBoundaryRequest(
+            algorithm='foreground', callback_service=CALLBACK, request_id='/robot/obstacle', period=0.5
+        )
+        message.duration = 10.0
+        r = message.region_of_interest
+        r.min_x, r.min_y, r.max_x, r.max_y = 0.0, 0.0, 4.0, 3.0
+        client = ServiceClient('/cam1/watch_object_boundary', WatchObjectBoundary, 10.0)
+        try:
+            return client.call(message)
+        finally:
+            client.close()
+
+    ros = graph
+    start(ros)
+    reply = watch()
+    assert (reply.accepted, reply.status) == (False, UNAVAILABLE)
+    assert reply.message.startswith('foreground: learning the reference of the empty floor ('), reply.message
+    wait_for(lambda: watch().accepted, 30, 'foreground to learn its reference', on_timeout=ros.describe)
+
+
 def test_a_dead_feed_unregisters_and_registers_again_when_frames_return(graph):
     ros = graph
     cam1, output, _ = start(ros, vision={'stale_after': 1.0})

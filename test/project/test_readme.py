@@ -14,6 +14,8 @@ run here too.
 
 from pathlib import Path
 
+import pytest
+
 from drvs.testing import RosHarness, wait_for
 from drvs.testing.doc_examples import commands, output_pattern, shell_blocks
 
@@ -33,6 +35,9 @@ def test_the_tutorials_commands_parse_into_the_three_terminals():
     assert output_pattern('x 5.694..6.095, (1.5, ...)').fullmatch('x 5.7..6.1, (1.25, 2, 3)')
 
 
+# A whole run of the localisation world and the commands after it, about half a minute: slow-marked
+# (make test-slow); the default suite runs the same world with --record in test/scenarios.
+@pytest.mark.slow
 def test_the_hand_run_example_works_as_written(ros: RosHarness):
     terminal1, terminal2, terminal3, *more = (commands(block) for block in shell_blocks(PAGE))
     assert [command for command, _ in terminal1] == [

@@ -112,6 +112,7 @@ def test_a_usage_error_exits_2_with_the_usage_on_stderr(argv, first_line):
     'options, message',
     [
         (['--requests', 'often'], '--requests is poll or watch, got often'),
+        (['--camera-source', 'depth'], '--camera-source is render, topic or colour, got depth'),
         (['--timeout', 'soon'], '--timeout needs seconds, got soon'),
         (['--robot-link', '2mbit'], '--robot-link needs --hosts'),
         (
@@ -123,6 +124,7 @@ def test_a_usage_error_exits_2_with_the_usage_on_stderr(argv, first_line):
     ],
     ids=[
         'requests',
+        'camera-source',
         'timeout',
         'robot-link without hosts',
         'hosts with an external master',

@@ -34,8 +34,8 @@ def fix_at(position, stamp=0.0, heading=None, half=0.15):
     return Fix(position, outline, stamp, 1, ('/vs1',), heading)
 
 
-def builder(roles=('obstacle', 'human'), map_period=1.0):
-    return MapBuilder(FLOOR, SIZE, RADIUS, roles, TTL, LINGER, map_period, resolution=0.05)
+def builder(roles=('obstacle', 'human'), map_period=1.0, **options):
+    return MapBuilder(FLOOR, SIZE, RADIUS, roles, TTL, LINGER, map_period, resolution=0.05, **options)
 
 
 def lethal_at(mapping, point):
@@ -239,3 +239,16 @@ def test_the_map_goes_out_at_most_once_per_period_while_it_changes():
         if mapping.update(now, None, None).publish:
             published.append(now)
     assert published == pytest.approx([0.0, 1.0])
+
+
+def test_elevation_around_the_robot_keeps_the_obstacle_it_touches():
+    """elevation finds the robot, its station and a cart it stands against as one region: the
+    robot and station are cut out, the cart's part stays (a colour model's blob would be dropped)."""
+    mapping = builder(roles=('obstacle',), cut_roles=('obstacle',))
+    me, station = fix_at((1.0, 1.0)), fix_at((3.5, 2.5))
+    merged = box(0.85, 0.85, 1.55, 1.15)  # me and a cart from x 1.2 to 1.55
+    mapping.observe('obstacle', '/vs1', [merged, station.outline.buffer(0.02)], 0.0)
+    mapping.update(0.0, me, station)
+    assert mapping.obstacles == 1
+    assert lethal_at(mapping, (1.5, 1.0)) and not lethal_at(mapping, (1.0, 1.0))
+    assert not lethal_at(mapping, (3.5, 2.5))

@@ -213,6 +213,8 @@ def seen(perception, role, vs, *outlines, stamp):
 
 def test_a_watch_id_names_the_node_and_the_role(watching):
     assert watching.obstacle_roles == ('obstacle', 'human', 'robot')
+    assert watching.cut_roles == ('robot',)
+    assert Perception({**MODELS, 'obstacle': 'elevation:0.03'}).cut_roles == ('obstacle',)
     assert watching.requests.watch_id('self') == '/robot1/self'
     assert watching.requests.parse('/robot1/robot') == ('robot', WATCH)
     unsent = Perception(MODELS, '/robot1')

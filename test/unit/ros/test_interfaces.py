@@ -187,6 +187,20 @@ def test_a_detected_object_carries_its_measured_height_and_defaults_to_unknown()
     assert round_trip(points_to_detected_object(outline)).height == 0.0
 
 
+def test_the_fusion_stage_passes_heights_through_its_tracker():
+    from drvs.ros.conversions import points_to_detected_object
+    from drvs.ros.server_fusion import detected_object, observations
+    from drvs.server.tracker import Tracker
+
+    outline = [(1.0, 2.0), (1.5, 2.0), (1.5, 2.5), (1.0, 2.5)]
+    (seen,) = observations([points_to_detected_object(outline, height=0.75)])
+    assert seen.height == pytest.approx(0.75)
+    tracker = Tracker()
+    tracker.frame('/vs1', 0.0, [seen])
+    (track,) = tracker.tracks(0.0)
+    assert round_trip(detected_object(track)).height == pytest.approx(0.75)
+
+
 def test_the_gateway_gives_every_field_of_a_detected_object():
     from drvs.gateway.routes import SCHEMAS
     from drvs.ros.conversions import points_to_detected_object

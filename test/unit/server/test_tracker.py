@@ -429,3 +429,37 @@ def test_a_small_objects_outline_is_its_newest_view_moved_not_a_union_of_views()
     assert len(view.outline) == 4
     newest = square(0.5 * 2.0 + 0.02, 1.0, size=0.2)  # b's view at 1.95 s, moved 50 ms along
     assert sorted(view.outline) == [pytest.approx(p, abs=0.01) for p in sorted(newest)]
+
+
+# -- heights ----------------------------------------------------------------------------------------
+
+
+def test_a_tracks_height_is_the_highest_top_its_cameras_measured_lately():
+    tracker = Tracker()
+    box = square(1.0, 1.0)
+    tracker.frame('a', 0.0, [Observation(box, height=0.95)])
+    tracker.frame('b', 0.0, [Observation(box, height=1.0)])  # the other camera sees more of the top
+    tracker.frame('c', 0.1, [Observation(box)])  # an algorithm that measures no height
+    (view,) = tracker.tracks(0.1)
+    assert view.height == pytest.approx(1.0)
+    for t in ticks(3.0, start=0.2):  # only c for longer than the coast time: b's top is forgotten
+        tracker.frame('c', t, [Observation(box)])
+    assert [v.height for v in tracker.tracks(3.2)] == [0.0]
+
+
+@pytest.mark.parametrize('height', [math.nan, math.inf, -1.0, 'high'])
+def test_a_height_that_is_not_a_number_of_metres_counts_as_unmeasured(height):
+    tracker = Tracker()
+    tracker.frame('a', 0.0, [Observation(square(1.0, 1.0), height=height)])
+    assert [v.height for v in tracker.tracks(0.0)] == [0.0]
+
+
+def test_pieces_of_one_object_keep_the_highest_top():
+    tracker = Tracker()
+    for t in ticks(1.0):  # a shelf, one camera seeing it whole
+        tracker.frame('a', t, [Observation(square(2.0, 1.0, 2.0), height=0.4)])
+    # The next frame splits it in two pieces, the second higher (a box standing on it).
+    halves = [Observation(square(1.5, 1.0, 1.0), height=0.4), Observation(square(2.5, 1.0, 1.0), height=1.2)]
+    result = tracker.frame('a', 1.0, halves)
+    assert result.created == 0
+    assert [v.height for v in tracker.tracks(1.0)] == [pytest.approx(1.2)]

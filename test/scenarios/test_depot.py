@@ -1,0 +1,52 @@
+"""Issue 26's depot: obstacles nobody named, found by elevation (noisy depth) or by foreground
+(cameras without depth); the robot reaches its station without touching them.
+
+The world checks are quick; the two runs are slow variants (about half a minute each on an
+idle machine, a minute on a loaded one: more than a default-suite pair may take).
+"""
+
+import pytest
+from shapely.geometry import LineString, Polygon
+from test_scenarios import SCENARIO_TIMEOUT, checked
+
+from drvs.algorithms.colour import ColourModel
+from drvs.sim.world_file import load_world
+from drvs.testing import RosHarness
+from drvs.testing.scenario import start_scenario
+
+WORLDS = {'elevation': 'worlds/depot.yaml', 'foreground': 'worlds/depot_foreground.yaml'}
+OPTIONS = {'elevation': ('--camera-source', 'render'), 'foreground': ('--camera-source', 'colour')}
+
+
+@pytest.mark.parametrize('algorithm', sorted(WORLDS))
+def test_no_model_names_an_obstacle_and_the_shelf_hangs_lower_than_the_robot(algorithm):
+    world = load_world(WORLDS[algorithm])
+    assert world.colour_models['obstacle'].split(':')[0] == algorithm
+    colours = [
+        ColourModel.parse(m.split(':', 1)[1]) for m in world.colour_models.values() if m.startswith('colour:')
+    ]
+    for body in world.objects:
+        assert not any(
+            all(c.lower[i] <= body.colour[i] <= c.upper[i] for i in range(3)) for c in colours
+        ), body.name
+    heights = sorted(body.top for body in world.objects if body.bottom == 0)
+    assert heights[0] <= 0.05 and heights[-1] >= 1.0  # a pallet and a 1 m box
+    (shelf,) = [body for body in world.objects if body.bottom > 0]
+    assert shelf.bottom < world.robot.size[2] < shelf.top  # the robot cannot pass under it
+    depth = [camera.depth_noise is not None for camera in world.vision_systems]
+    assert all(depth) if algorithm == 'elevation' else not any(depth)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('algorithm', sorted(WORLDS))
+def test_the_robot_reaches_its_station_round_obstacles_nobody_named(ros: RosHarness, algorithm):
+    world = load_world(WORLDS[algorithm])
+    run = start_scenario(ros, WORLDS[algorithm], *OPTIONS[algorithm], timeout=SCENARIO_TIMEOUT)
+    code, summary, trace, logs = checked(run)
+    assert code == 0, logs
+    assert summary['reached'] is True
+    assert summary['collisions'] == 0
+    assert summary['replans'] >= 1  # the first plan, the straight line, crosses the pallet
+    driven = LineString([(x, y) for _, x, y in trace['trajectory']])
+    for body in world.objects:  # the shelf too: the robot did not drive under it
+        assert not driven.intersects(Polygon(body.footprint())), body.name
