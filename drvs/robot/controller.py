@@ -367,9 +367,10 @@ class Controller:
         return densify(shortcut(points, free, costs, spec.resolution), spec.resolution)
 
     def _free(self, point: Point) -> bool:
-        """Whether ``point`` is on the floor and outside every obstacle's margin."""
+        """Whether a robot centred on ``point`` stands on the floor, outside every obstacle's margin."""
         width, height = self.grid.spec.size
-        inside_floor = 0.0 <= point[0] <= width and 0.0 <= point[1] <= height
+        r = self.settings.radius  # the robot's body stays on the floor
+        inside_floor = r <= point[0] <= width - r and r <= point[1] <= height - r
         return inside_floor and bool(self.grid.costs[self.grid.spec.cell_of(point)] < INFLATED)
 
     def _in_the_way(self) -> bool:
