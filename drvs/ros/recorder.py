@@ -108,9 +108,6 @@ class RunRecorder:
         self._robot_position: dict[str, tuple[float, float]] = {}
         # The bodies whose ground truth the tracking metrics need over time: robots and humans.
         self._moving = {r.name for r in world.robots} | {o.name for o in world.objects if o.moving}
-        # Tracking counts from the first sample on: a bag has tracks from before the live recorder
-        # subscribed, and both must measure the same periods.
-        self._sampled = False
         self._touching: dict[str, set[str]] = {}  # robot -> what it touched in the last ground truth
 
     @property
@@ -182,11 +179,13 @@ class RunRecorder:
         first sample on, as every tracking message)."""
         stamp, poses = body_poses_from_msg(msg)
         with self._lock:
-            if self._closed or not self._sampled:
+            if self._closed:
                 return
             for name in self._moving & poses.keys():
                 samples = self.record.truth.setdefault(name, [])
-                if not samples or stamp - samples[-1][0] >= TRUTH_STEP:
+                # One per TRUTH_STEP of ROS time, on a grid fixed by the stamps (not by the first
+                # pose this subscriber happened to receive): a bag gives the same samples.
+                if not samples or math.floor(stamp / TRUTH_STEP) > math.floor(samples[-1][0] / TRUTH_STEP):
                     samples.append((stamp, *poses[name][:2]))
 
     def on_objects(self, msg: TrackedObjects) -> None:
@@ -203,7 +202,7 @@ class RunRecorder:
             for algorithm, obj in zip(msg.algorithms, msg.objects, strict=True)
         )
         with self._lock:
-            if self._sampled and not self._closed:
+            if not self._closed:  # counted over the samples' stamps (RunRecord.tracking_window)
                 self.record.track_periods.append(TrackPeriod(msg.header.stamp.to_sec(), tracks))
 
     def on_status(self, msg: RobotStatus, robot: str) -> bool:
@@ -288,7 +287,9 @@ class RunRecorder:
             self.record.cpu = cpu_summary(msg.cpu)
             self.record.wall_seconds = msg.wall_seconds
             self._closed = msg.final
-            self._sampled = True
+            stamp = msg.header.stamp.to_sec()
+            first = self.record.tracking_window[0] if self.record.tracking_window else stamp
+            self.record.tracking_window = (first, stamp)
 
     def _update_elapsed(self) -> None:
         """Each robot's seconds from the first status to its newest counted one (under the lock)."""

@@ -97,6 +97,9 @@ class RunRecord:
     # The tracking metrics' inputs: the moving bodies' ground truth and each /drvs/objects message.
     truth: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)  # name -> [(t, x, y)]
     track_periods: list[TrackPeriod] = field(default_factory=list)
+    # (from, to): the stamps the tracking metrics count, the same for the live recorder and a bag
+    # (None: all). Another subscriber (rosbag record) sees messages near the ends in another order.
+    tracking_window: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         self.robots = {r.name: self.robots.get(r.name) or RobotRecord(r.name) for r in self.world.robots}
@@ -258,9 +261,19 @@ def summary(record: RunRecord, best_length: Mapping[str, float]) -> dict:
     return result
 
 
+TRACKING_TAIL = 1.0
+"""Seconds before the final sample's stamp whose tracks the metrics leave out: a /drvs/objects
+message stamped then may reach the live recorder after its final sample, and a bag has it."""
+
+
 def tracking(record: RunRecord) -> dict:
-    """The summary's ``tracking`` block: fused tracks against ground truth (:func:`.tracking.evaluate`)."""
-    return evaluate(record.world, record.truth, record.track_periods)
+    """The summary's ``tracking`` block: fused tracks against ground truth (:func:`.tracking.evaluate`),
+    the tracks stamped in :attr:`RunRecord.tracking_window` (its end less :data:`TRACKING_TAIL`)."""
+    periods = record.track_periods
+    if record.tracking_window is not None:
+        start, end = record.tracking_window[0], record.tracking_window[1] - TRACKING_TAIL
+        periods = [p for p in periods if start <= p.stamp <= end]
+    return evaluate(record.world, record.truth, periods)
 
 
 def trace(record: RunRecord) -> dict:

@@ -73,9 +73,9 @@ def cpu(node, first, last, start=100.0, end=104.0):
     )
 
 
-def sample(first_status, final=False, entries=(), world=WORLD, wall_seconds=0.0):
+def sample(first_status, final=False, entries=(), world=WORLD, wall_seconds=0.0, stamp=100.0):
     return RecorderSample(
-        header=Header(stamp=genpy.Time.from_sec(100.0)),
+        header=Header(stamp=genpy.Time.from_sec(stamp)),
         world=str(world),
         first_status=genpy.Time.from_sec(first_status) if first_status else genpy.Time(),
         final=final,
@@ -301,7 +301,8 @@ def a_fleet_run(world):
         ('/world_sim/ground_truth', at(1.5, (1.0, 3.0), (1.0, 1.0)), True),
         ('/robot1/status', status(2.0, 'localising'), True),
         ('/robot2/status', status(2.5, 'localising'), True),
-        ('/scenario_recorder/samples', sample(2.0, world=world), True),
+        # The tracks counted: stamped from the first sample to the final one less a second.
+        ('/scenario_recorder/samples', sample(2.0, world=world, stamp=1.9), True),
         ('/world_sim/poses', poses(1.5, {'robot1': (1.0, 3.0), 'robot2': (1.0, 1.0), 'other': (0, 0)}), True),
         ('/drvs/objects', tracked(2.0, [(robots, 1, (1.02, 3.0)), (robots, 2, (1.0, 1.0))]), True),
         ('/world_sim/ground_truth', at(3.0, (2.0, 3.0), (1.0, 1.0)), True),
@@ -324,7 +325,7 @@ def a_fleet_run(world):
         ('/robot2/status', status(8.5, 'failed', 0, 'no route', callbacks=4, callback_bytes=999), True),
         ('/drvs/stats', server_stats(12), True),
         ('/vs1/stats', stats(3, watch_calls=11, watch_evaluations=40, renders=20), True),
-        ('/scenario_recorder/samples', sample(2.0, True, world=world, wall_seconds=11.0), True),
+        ('/scenario_recorder/samples', sample(2.0, True, world=world, wall_seconds=11.0, stamp=5.0), True),
         ('/drvs/stats', server_stats(99), False),
         ('/robot1/status', status(9.0, 'arrived', 1, '', requests=60), False),
         ('/drvs/objects', tracked(9.0, [(robots, 7, (2.0, 2.0))]), False),
