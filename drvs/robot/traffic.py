@@ -36,6 +36,9 @@ YIELD_MARGIN = 0.2
 """Metres beyond the sum of two robots' radii under which their predicted closest approach is too close."""
 PERSON_MARGIN = 0.25
 """Metres beyond the robot's radius and a person's under which the robot comes too close to them."""
+SETTLE = 0.5
+"""Seconds: with no velocity clear of people, the one whose closest approach from then on is the
+largest is taken (:func:`clear_of_people`)."""
 
 
 @dataclass(frozen=True)
@@ -301,7 +304,8 @@ def clear_of_people(
     person moving at their velocity stays over the robot's radius, the person's and
     :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still, and
     ``back`` (the way the robot came, reversed: floor it has just been on) where ``free`` holds
-    the point it reaches in a second; with none clear, the one that comes least close. So the
+    the point it reaches in a second; with none clear, the one that comes least close from
+    :data:`SETTLE` seconds on (when it is already too close, the way out). So the
     robot waits before a person's way, and backs out of it rather than wait in it; it never
     steps onto floor off its way (which its cameras might not see).
 
@@ -313,6 +317,9 @@ def clear_of_people(
     (0.0, 0.5)
     >>> clear_of_people((1.0, 0.0), (0.0, 0.0), [person], 0.2, 2.0, back=(0.0, -0.5))[0]  # in its way
     (0.0, -0.5)
+    >>> walking_at_it = Mover(box(1.2, 0.1, 1.6, 0.5), (0.0, -0.3))  # already close, coming nearer
+    >>> clear_of_people((1.0, 0.0), (0.5, 0.0), [walking_at_it], 0.2, 2.0, back=(-0.5, 0.0))[0]
+    (-0.5, 0.0)
     """
     moving = [p for p in people if p.speed >= STILL]
     if not moving:
@@ -322,17 +329,21 @@ def clear_of_people(
         candidates.append(back)
     best: tuple[float, Point, Mover | None] | None = None
     for velocity in candidates:
-        closest, nearest = math.inf, None
+        closest, later, nearest = math.inf, math.inf, None
         for person in moving:
             offset = (person.position[0] - position[0], person.position[1] - position[1])
             relative = (person.velocity[0] - velocity[0], person.velocity[1] - velocity[1])
-            _, d = closest_approach(offset, relative, horizon)
-            slack = d - (radius + person.radius + PERSON_MARGIN)
+            limit = radius + person.radius + PERSON_MARGIN
+            slack = closest_approach(offset, relative, horizon)[1] - limit
+            # Already too close, every velocity's closest approach is now: rank them by the one
+            # from half a second on (the way out, not further in).
+            ahead = (offset[0] + relative[0] * SETTLE, offset[1] + relative[1] * SETTLE)
+            later = min(later, closest_approach(ahead, relative, max(horizon - SETTLE, 0.0))[1] - limit)
             if slack < closest:
                 closest, nearest = slack, person
         if closest >= 0:
             return velocity, (None if velocity == planned else nearest)
-        if best is None or closest > best[0]:
-            best = (closest, velocity, nearest)
+        if best is None or later > best[0]:
+            best = (later, velocity, nearest)
     assert best is not None  # planned is always a candidate
     return best[1], best[2]
