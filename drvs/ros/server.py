@@ -33,16 +33,11 @@ from drvs.server.dispatch import Busy, Dispatcher
 from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
 from drvs.server.registration import Registrar
-from drvs.server.registry import REGISTERED, Registration, Registry
+from drvs.server.registry import REGISTERED, Registration
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
-from drvs.server.shared_registry import (
-    SharedRegistry,
-    StoreError,
-    StoreUnavailable,
-    adopted_watch,
-    stored_watch,
-)
+from drvs.server.shared_registry import SharedRegistry
 from drvs.server.tracker import TrackerSettings
+from drvs.server.watch_sharing import WatchSharing, open_registry
 from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
 from drvs.srv import (
     DetectObjectBoundary,
@@ -58,8 +53,6 @@ __all__ = ['DrvsServer']
 
 SHARED_SYNC_PERIOD = 0.1
 """Seconds between two looks at a shared registry's change log (renewals and sweeps: their own periods)."""
-TAKEOVER_PERIOD = 1.0
-"""Seconds between two looks for the watches of replicas gone silent."""
 WATCH_WAIT = 0.5
 """Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""
 STATS_PERIOD = 1.0
@@ -96,7 +89,8 @@ class DrvsServer:
     def __init__(self, settings: ServerSettings):
         self.settings = settings
         self.node = NodeScaffold(self.health, counters=STATS_FIELDS)
-        self.registry = self._make_registry(settings)
+        replica = f'{rospy.get_name()}@{socket.gethostname()}:{os.getpid()}'
+        self.registry = open_registry(settings, replica)
         self.forwarder = Forwarder(
             settings.forward_timeout,
             self.registry,
@@ -160,48 +154,18 @@ class DrvsServer:
             busy_retry_after=settings.busy_retry_after,
         )
         self._watch_lock = threading.Lock()  # guards watches, and keeps their forwards in order
-        self._saved_after = 0  # a shared registry's recoveries when the watches were last saved
-        self._next_takeover = 0.0
+        self.sharing = (  # the watches kept in a shared registry's database (None: in memory only)
+            WatchSharing(
+                self.registry, self.watches, self._watch_lock, settings.watch_takeover, rospy.get_time
+            )
+            if isinstance(self.registry, SharedRegistry)
+            else None
+        )
         self._watch_wake = threading.Event()  # set when the registry changed or a forward failed
         self._held = threading.local()  # .forwards: queued by this thread's handler, not sent yet
         self.algorithms: AlgorithmSet | None = None  # those the server can check in full; set by start()
         self.algorithm_names: AlgorithmNames | None = None
         self._registry_publisher = self._markers_publisher = self._stats_publisher = None
-
-    @staticmethod
-    def _make_registry(settings: ServerSettings) -> Registry:
-        """The in-memory registry, or one shared through the database ``~registry`` names.
-
-        :raises StoreError: the database cannot be used (one line; the node exits 2).
-        """
-        limits = dict(
-            lease=settings.lease,
-            max_failures=settings.max_failures,
-            ejection_time=settings.ejection_time,
-            max_ejection_time=settings.max_ejection_time,
-        )
-        if settings.registry == 'memory':
-            return Registry(**limits)
-        try:
-            from drvs.server.pg_store import PgStore  # psycopg only when a database is asked for
-        except ImportError as error:
-            raise StoreError(
-                f'~registry: a PostgreSQL registry needs psycopg 3 ({error}): run scripts/setup.sh --postgres'
-            ) from None
-
-        replica = f'{rospy.get_name()}@{socket.gethostname()}:{os.getpid()}'
-        store = PgStore(settings.registry, replica=replica)
-        store.open()
-        registry = SharedRegistry(store, retry_after=settings.unavailable_retry_after, **limits)
-        try:
-            registry.load()
-        except StoreUnavailable as error:
-            store.close()
-            raise StoreError(
-                f'~registry: the registry database {store.where} did not answer: {error}'
-            ) from None
-        rospy.loginfo('registry: %d vision systems from %s (replica %s)', len(registry), store.where, replica)
-        return registry
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -565,10 +529,11 @@ class DrvsServer:
             self._submit(answer.forwards)
             serving = len(self.watches.serving((caller, request.request_id)))
             standing = self.watches.get((caller, request.request_id))
-        if standing is not None:
-            self._save_watch(standing)
-        else:
-            self._drop_watch(caller, request.request_id)
+        if self.sharing is not None:
+            if standing is not None:
+                self.sharing.save(standing)
+            else:
+                self.sharing.drop(caller, request.request_id)
         return WatchObjectBoundaryResponse(
             accepted=True,
             status=ACCEPTED,
@@ -611,65 +576,10 @@ class DrvsServer:
             self._close(entry)
             self._forget(entry)
             self._mark_changed()
-        if isinstance(self.registry, SharedRegistry):
-            self._follow_shared()
+        if self.sharing is not None and self.sharing.follow():
+            self._watch_wake.set()
         if self.registry.version != version:
             self._mark_changed()
-
-    def _follow_shared(self) -> None:
-        """A shared registry's part of the loop: the watches of vision systems restarted through another
-        replica, the watches to save again after an outage, those of silent replicas to take over."""
-        registry = self.registry
-        restarted, registry.restarted = registry.restarted, []
-        with self._watch_lock:
-            for service in restarted:
-                self.watches.forget(service)
-        if registry.down_since is not None:
-            return
-        if registry.recoveries != self._saved_after:
-            self._saved_after = registry.recoveries
-            with self._watch_lock:
-                standing = self.watches.standing()
-            for watch in standing:
-                self._save_watch(watch)
-        now = rospy.get_time()
-        if now < self._next_takeover:
-            return
-        self._next_takeover = now + TAKEOVER_PERIOD
-        try:
-            orphans = registry.store.orphaned_watches(self.settings.watch_takeover)
-        except StoreUnavailable:
-            return
-        adopted = 0
-        with self._watch_lock:
-            for stored in orphans:
-                adopted += self.watches.adopt(adopted_watch(stored, rospy.get_time()))
-        if orphans:
-            rospy.loginfo(
-                'took over %d watches of replicas not heard from in %g s',
-                adopted,
-                self.settings.watch_takeover,
-            )
-            self._watch_wake.set()
-
-    def _save_watch(self, watch) -> None:
-        """Keep ``watch`` in the shared store (a replica that takes over finds it); fused watches are
-        not kept: their callbacks go through this replica's fusion stage."""
-        if not isinstance(self.registry, SharedRegistry) or watch.forward_as is not None:
-            return
-        if self.registry.down_since is not None:
-            return  # saved again once the database is back
-        try:
-            self.registry.store.save_watch(stored_watch(watch, rospy.get_time()))
-        except StoreUnavailable:
-            pass  # saved again at its next renewal, or once the database is back (_follow_shared)
-
-    def _drop_watch(self, caller: str, request_id: str) -> None:
-        if isinstance(self.registry, SharedRegistry) and self.registry.down_since is None:
-            try:
-                self.registry.store.drop_watch(caller, request_id)
-            except StoreUnavailable:
-                pass  # it expires in the database by itself
 
     def _mark_changed(self) -> None:
         with self._changed:
