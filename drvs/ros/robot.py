@@ -22,9 +22,8 @@ from drvs.common.health import Health, robot_health
 from drvs.common.status import UNAVAILABLE
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
-from drvs.robot.asked import AskedFloor
-from drvs.robot.controller import FINAL_STATES, Controller, ControllerSettings
-from drvs.robot.mapping import MapBuilder
+from drvs.robot.assembly import assemble
+from drvs.robot.controller import FINAL_STATES, Controller
 from drvs.robot.mission import (
     FAIL,
     SKIP,
@@ -35,14 +34,12 @@ from drvs.robot.mission import (
     fused_outcome,
     fused_role,
     mission_end,
-    obstacle_memory_ttl,
     post_round,
     schedule_for,
 )
-from drvs.robot.params import WATCH, RobotParams
-from drvs.robot.perception import LOCALISATION_ROLES, Perception, PerceptionError, RegionPolicy, whole_floor
+from drvs.robot.params import RobotParams
+from drvs.robot.perception import LOCALISATION_ROLES, PerceptionError, whole_floor
 from drvs.robot.poll_schedule import ACCEPT, RETRY, Request
-from drvs.robot.traffic import YIELD_MARGIN, Yielding
 from drvs.robot.watch_schedule import WatchCall
 from drvs.ros.conversions import box_to_msg, polygon_to_points
 from drvs.ros.messages import occupancy_to_msg, path_to_msg, pose_to_msg, robot_status_to_msg
@@ -77,62 +74,11 @@ class BlindRobot:
         self.params = params
         world = load_world(params.world)
         me = fleet_robot(world, params.robot, rospy.get_name())
-        # Only what a robot may know of the world file: its colour models, the floor, its size and speed.
-        self.floor_size = world.floor_size
-        self.speed = params.speed or me.body.speed
-        size = me.body.size
-        self.robot_radius = params.robot_radius
-        if self.robot_radius is None:  # the circle that holds the body whatever its heading
-            self.robot_radius = math.hypot(size[0], size[1]) / 2
-        self.watching = params.requests == WATCH
-        self.fused = params.fused
-        fused = [role for role in me.colour_models if fused_role(params, role)]
-        self.perception = Perception(
-            me.colour_models, rospy.get_name(), watch_keep=params.watch_duration, fused=fused
-        )
-        self.asked = AskedFloor(self.perception.obstacle_roles, params.answer_wait)
-        self.regions = RegionPolicy(
-            self.floor_size,
-            self.perception.obstacle_roles,
-            self.robot_radius,
-            params.self_margin,
-            params.roi_margin,
-            params.fix_timeout,
-        )
-        self.map = MapBuilder(
-            self.floor_size,
-            tuple(size[:2]),
-            self.robot_radius,
-            self.perception.obstacle_roles,
-            ttl=obstacle_memory_ttl(params),
-            # A watch's "all gone" keeps the outlines ~obstacle_ttl more, as polling would.
-            linger=params.obstacle_ttl,
-            map_period=params.map_period,
-            resolution=params.resolution,
-            clearance=params.robot_clearance,
-            horizon=params.traffic_horizon,
-            fused=fused,
-            caution=params.obstacle_clearance,
-            cut_roles=self.perception.cut_roles,
-        )
-        rank = sorted(robot.name for robot in world.robots).index(me.name)
-        self.yielding = Yielding(
-            params.traffic_horizon,
-            distance=2 * self.robot_radius + YIELD_MARGIN,
-            patience=params.yield_patience * (1 + rank / 2),
-        )
-        self.settings = ControllerSettings(
-            speed=self.speed,
-            goal_tolerance=params.goal_tolerance,
-            fix_timeout=params.fix_timeout,
-            unreachable_timeout=params.unreachable_timeout,
-            lookahead=params.lookahead,
-            replan_distance=params.replan_distance,
-            route_tolerance=params.route_tolerance,
-            corridor_margin=params.roi_margin / 2,
-            radius=self.robot_radius,
-            people_horizon=params.people_horizon,
-        )
+        parts = assemble(params, world, me, rospy.get_name())
+        self.floor_size, self.speed, self.robot_radius = parts.floor_size, parts.speed, parts.robot_radius
+        self.watching, self.fused = parts.watching, params.fused
+        self.perception, self.asked, self.regions = parts.perception, parts.asked, parts.regions
+        self.map, self.yielding, self.settings = parts.map, parts.yielding, parts.settings
         self.schedule = schedule_for(params, tuple(me.colour_models), clock=rospy.get_time)
         self.controller: Controller | None = None  # from start()
         self.coverage: Coverage | None = None  # from start()
