@@ -20,7 +20,7 @@ import numpy as np
 import rospy
 from sensor_msgs.msg import Image
 
-from drvs.algorithms import Algorithm, AlgorithmError, FrameProblem, Parsed, load_algorithms
+from drvs.algorithms import AlgorithmError, FrameProblem, Parsed, load_algorithms
 from drvs.algorithms.foreground import read_reference
 from drvs.common.counters import PeriodCounts
 from drvs.common.failover import ServerList
@@ -47,7 +47,7 @@ from drvs.srv import (
 )
 from drvs.vision.detections import FrameDetections, Job
 from drvs.vision.frame import Frame
-from drvs.vision.frame_problems import FrameProblems
+from drvs.vision.frame_problems import FrameProblems, depth_problem
 from drvs.vision.params import VisionSystemParams
 from drvs.vision.pipeline import draw_detections, in_region, on_floor
 from drvs.vision.registration import RENEW, UNREGISTER, Attempt, Registration
@@ -404,28 +404,10 @@ class VisionSystemNode:
                 self.watches.callback_failed(terms)
 
     def _frame_problem(self, algorithm: Parsed, now: float) -> str | None:
-        """Why ``algorithm`` cannot work on this camera's frames now: what the newest frame at hand
-        shows, or without one a problem met lately (:class:`FrameProblems`); None if none is known."""
-        check = getattr(algorithm.algorithm, 'frame_problem', None)
-        if getattr(type(algorithm.algorithm), 'frame_problem', None) is Algorithm.frame_problem:
-            check = None  # it says of no frame that it cannot work on it: no frame to look at
-        frame = self.source.latest() if check is not None else None  # decoding it notes a depth problem
-        problem = self._depth_problem(algorithm)
-        if problem is None and frame is not None:  # the newest frame says it all
-            problem = check(frame)
-            if problem is None:
-                self.frame_problems.clear(algorithm.name)
-            return problem
-        return problem or self.frame_problems.current(algorithm.name, now)
-
-    def _depth_problem(self, algorithm: Parsed) -> str | None:
-        """Why the camera's depth was left out of its newest frame, for an algorithm that needs it."""
-        if getattr(algorithm.algorithm, 'needs_depth', False) and self.source.depth_problem:
-            return f'{algorithm.name}: {self.source.depth_problem}'
-        return None
+        return self.frame_problems.why(algorithm, self.source.latest, lambda: self.source.depth_problem, now)
 
     def _note_frame_problem(self, algorithm: Parsed, error: FrameProblem, what: str) -> None:
-        problem = self._depth_problem(algorithm) or str(error)
+        problem = depth_problem(algorithm, self.source.depth_problem) or str(error)
         self.frame_problems.note(algorithm.name, problem, rospy.get_time())
         self.node.log_throttled(
             ('frame problem', algorithm.name),

@@ -16,8 +16,12 @@ True
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
-__all__ = ['FRAME_PROBLEM_HOLD', 'FrameProblems']
+from drvs.algorithms import Algorithm, Parsed
+from drvs.vision.frame import Frame
+
+__all__ = ['FRAME_PROBLEM_HOLD', 'FrameProblems', 'depth_problem']
 
 FRAME_PROBLEM_HOLD = 10.0
 """Seconds a frame problem refuses requests and shows on the diagnostics after it was last met;
@@ -48,8 +52,39 @@ class FrameProblems:
             return None
         return found[0]
 
+    def why(
+        self,
+        algorithm: Parsed,
+        latest: Callable[[], Frame | None],
+        depth: Callable[[], str | None],
+        now: float,
+    ) -> str | None:
+        """Why ``algorithm`` cannot work on the camera's frames now: what the newest frame at hand
+        (``latest()``) shows, or without one a problem met lately; None if none is known. ``depth()``:
+        why the camera's depth was left out of its newest frame (:func:`depth_problem`), asked after
+        ``latest()``, whose decoding finds it."""
+        check = getattr(algorithm.algorithm, 'frame_problem', None)
+        if getattr(type(algorithm.algorithm), 'frame_problem', None) is Algorithm.frame_problem:
+            check = None  # it says of no frame that it cannot work on it: no frame to look at
+        frame = latest() if check is not None else None  # decoding it notes a depth problem
+        problem = depth_problem(algorithm, depth())
+        if problem is None and frame is not None and check is not None:  # the newest frame says it all
+            problem = check(frame)
+            if problem is None:
+                self.clear(algorithm.name)
+            return problem
+        return problem or self.current(algorithm.name, now)
+
     def messages(self, now: float) -> list[str]:
         """Every recent problem's message, by algorithm name."""
         with self._lock:
             problems = sorted(self._problems.items())
         return [message for _, (message, when) in problems if now - when <= self.hold]
+
+
+def depth_problem(algorithm: Parsed, depth: str | None) -> str | None:
+    """``depth`` (why the camera's depth was left out of its newest frame) as ``algorithm``'s
+    problem, if it needs depth; else None."""
+    if getattr(algorithm.algorithm, 'needs_depth', False) and depth:
+        return f'{algorithm.name}: {depth}'
+    return None
