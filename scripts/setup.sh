@@ -50,7 +50,8 @@ done
 # The test tools and the PyPI wheels, pinned to what the project was checked with (motmetrics:
 # the tracking metrics of drvs/sim/tracking.py; 1.4.0 runs on Debian's numpy 1.24, scipy 1.10, pandas 1.5).
 # roslibpy: the rosbridge client of drvs_gateway's Python example (test/live/test_rosbridge.py).
-PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 ruff==0.8.4 motmetrics==1.4.0 roslibpy==2.1.0)
+# pytest-xdist: `make test` runs the tests before the whole runs on two workers (Makefile).
+PIP_PACKAGES=(pybullet==3.2.7 pytest==8.3.4 pytest-timeout==2.3.1 pytest-xdist==3.6.1 ruff==0.8.4 motmetrics==1.4.0 roslibpy==2.1.0)
 
 say() { printf 'setup: %s\n' "$*"; }
 die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }

@@ -68,7 +68,13 @@ def graph(ros, monkeypatch):
 
 
 def pytest_sessionfinish(session, exitstatus):
-    """Fail the run if any process started by the suite outlived it (then kill it)."""
+    """Fail the run if any process started by the suite outlived it (then kill it).
+
+    With pytest-xdist only the controller looks, once every worker has ended: a worker that ends
+    first would find the other workers' processes still running.
+    """
+    if hasattr(session.config, 'workerinput'):
+        return
     left = processes_of_session(os.environ[SESSION_VARIABLE])
     if not left:
         return

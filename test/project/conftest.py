@@ -73,6 +73,10 @@ _started: list[TinyBench] = []
 
 
 def pytest_collection_finish(session):
+    # Under pytest-xdist every worker collects every test but runs only some: the run starts in
+    # the test itself, on the worker that runs it (the other worker keeps the second core busy).
+    if hasattr(session.config, 'workerinput'):
+        return
     if not session.config.option.collectonly and any(item.nodeid == SMOKE_TEST for item in session.items):
         _started.append(TinyBench())
 
