@@ -2,8 +2,11 @@
 
 A client asks the server in use; on ``UNAVAILABLE`` or no answer within its deadline it moves
 to the next in the list (after the last, the first again); other refusals (``BUSY``,
-``RATE_LIMITED``) are retried at the same server after their ``retry_after``. The nodes' ``~servers``
-names the servers by namespace (:func:`namespaces`, :func:`service_names`). No ROS here.
+``RATE_LIMITED``) are retried at the same server after their ``retry_after``. The first server is
+the preferred one: ``return_after`` seconds after leaving it a client asks it again, and stays if it
+answers; if it does not, the client goes back quietly and waits twice as long (up to
+``RETURN_AFTER_MAX``) before the next try. The nodes' ``~servers`` names the servers by namespace
+(:func:`namespaces`, :func:`service_names`). No ROS here.
 Replicas: docs/registry.md.
 
 >>> servers = ServerList(['/drvs/detect_object_boundary', '/drvs_b/detect_object_boundary'])
@@ -17,14 +20,31 @@ Replicas: docs/registry.md.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from drvs.common.settings import ParamError
 from drvs.common.status import UNAVAILABLE
 from drvs.common.validation import ValidationError, global_ros_name
 
-__all__ = ['Move', 'ServerList', 'moves_on', 'namespace_of', 'namespaces', 'service_names']
+__all__ = [
+    'RETURN_AFTER',
+    'RETURN_AFTER_MAX',
+    'Move',
+    'ServerList',
+    'moves_on',
+    'namespace_of',
+    'namespaces',
+    'service_names',
+]
+
+
+RETURN_AFTER = 30.0
+"""Seconds on another server before a client asks its first server again (``~server_return``)."""
+
+RETURN_AFTER_MAX = 300.0
+"""The longest wait between two tries of a first server that still does not answer."""
 
 
 def moves_on(status: int | None) -> bool:
@@ -98,35 +118,76 @@ class ServerList:
     :raises ValueError: an empty list, or a name twice.
     """
 
-    def __init__(self, servers: Sequence[str]):
+    def __init__(
+        self,
+        servers: Sequence[str],
+        clock: Callable[[], float] = time.monotonic,
+        return_after: float = RETURN_AFTER,
+    ):
         names = list(servers)
         if not names:
             raise ValueError('servers: empty; name at least one DRVS server')
         repeated = sorted({name for name in names if names.count(name) > 1})
         if repeated:
             raise ValueError(f'servers: {", ".join(repeated)} named more than once')
+        if not return_after > 0:
+            raise ValueError(f'server_return: must be positive (seconds), got {return_after}')
         self.servers = names
         self._index = 0
         self.moves = 0  # times a failure moved to the next server
+        self.returns = 0  # times the client went back to its first server and it answered
         self._failures = 0  # failures in a row since a server last answered
+        self._clock = clock
+        self.return_after = float(return_after)
+        self._wait = self.return_after  # before the next try of the first server
+        self._left_first: float | None = None  # when the client left the first server (None: on it)
+        self._trying_first: int | None = None  # while trying the first again: the index it came from
 
     @property
     def current(self) -> str:
+        """The server to ask now: the one in use, or the first once it is time to try it again."""
+        if (
+            self._index != 0
+            and self._left_first is not None
+            and self._trying_first is None
+            and self._clock() - self._left_first >= self._wait
+        ):
+            self._trying_first, self._index = self._index, 0
+        return self.servers[self._index]
+
+    @property
+    def in_use(self) -> str:
+        """The server in use, without trying the first again (for reports from other threads)."""
         return self.servers[self._index]
 
     def failed(self) -> str:
-        """The server in use gave ``UNAVAILABLE`` or no answer: the next one (now in use)."""
-        self._index = (self._index + 1) % len(self.servers)
+        """The server in use gave ``UNAVAILABLE`` or no answer: the next one (now in use), or, when it
+        was the first tried again, the one the client came from (and a longer wait before the next try)."""
         self.moves += 1
-        self._failures += 1
-        return self.current
+        if self._trying_first is not None:
+            back, self._trying_first = self._trying_first, None
+            self._wait = min(2 * self._wait, max(RETURN_AFTER_MAX, self.return_after))
+            self._move_to(back)
+        else:
+            self._move_to((self._index + 1) % len(self.servers))
+            self._failures += 1
+        return self.servers[self._index]
+
+    def _move_to(self, index: int) -> None:
+        if index == 0:
+            self._left_first = None
+        elif self._index == 0:
+            self._left_first = self._clock()
+        self._index = index
 
     def fail(self, server: str, why: str) -> Move | None:
         """``server`` gave ``UNAVAILABLE`` or no answer (``why`` says how): the move to the next
         one, or None when there is no other server or ``server`` is no longer the one in use
         (a call to it that was still out)."""
-        if len(self.servers) == 1 or server != self.current:
+        if len(self.servers) == 1 or server != self.servers[self._index]:
             return None
+        if self._trying_first is not None:  # the first still does not serve: back, quietly
+            return Move(self.failed(), '')
         quiet = self._failures >= len(self.servers)
         new = self.failed()
         if quiet:
@@ -142,7 +203,12 @@ class ServerList:
     def answered(self, server: str) -> str:
         """``server`` answered (anything but ``UNAVAILABLE``): what to log ('' unless it ends a
         whole round of failures)."""
-        if server != self.current:
+        if server != self.servers[self._index]:
             return ''
+        if self._trying_first is not None:
+            self._trying_first, self._failures, self._wait = None, 0, self.return_after
+            self._left_first = None
+            self.returns += 1
+            return f'DRVS server {server} answers again; asking it from now on'
         quiet, self._failures = self._failures >= len(self.servers), 0
         return f'DRVS server {server} answers again' if quiet and len(self.servers) > 1 else ''

@@ -88,7 +88,7 @@ class BlindRobot:
         self._done = threading.Event()
         self._last_path: list | None = None
         self._refused: tuple[str, str] | None = None  # (role, message): a fused answer every camera refused
-        self.servers = ServerList(params.services)  # guarded by _requests
+        self.servers = ServerList(params.services, return_after=params.server_return)  # guarded by _requests
         self._clients: dict[str, ServiceClient] = {}  # by server; only the requester thread calls them
         self.node = NodeScaffold(self.health, COUNTERS, hardware_id=rospy.get_name().rsplit('/', 1)[-1])
 
@@ -453,7 +453,7 @@ class BlindRobot:
             fix_age=None if fix is None else max(now - fix.stamp, 0.0),
             fix_timeout=self.params.fix_timeout,
             coverage=covered,
-            server=self.servers.current,
+            server=self.servers.in_use,
             server_moves=self.servers.moves,
         )
 

@@ -123,7 +123,7 @@ class VisionSystemNode:
             params.min_watch_period, params.max_watch_duration, params.change_tolerance, params.max_watches
         )
         self.registration = Registration(params.move_threshold, params.retry_period)
-        self.servers = ServerList(params.register_services)  # guarded by the registration thread
+        self.servers = ServerList(params.register_services, return_after=params.server_return)  # guarded by the registration thread
         self._register_clients: dict[str, ServiceClient] = {}
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -509,7 +509,7 @@ class VisionSystemNode:
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=registration.status,
             registration_error=registration.error,
-            server=self.servers.current,
+            server=self.servers.in_use,
             server_moves=self.servers.moves,
             frame_problems=[
                 *([self.source.pose_problem] if self.source.pose_problem else []),
