@@ -8,9 +8,9 @@ import drvs.common.failover
 from drvs.common.failover import Move, ServerList, moves_on, namespace_of, namespaces, service_names
 from drvs.common.settings import ParamError
 from drvs.common.status import BUSY, RATE_LIMITED, UNAVAILABLE
-from drvs.testing import ManualClock
 from drvs.robot.params import RobotParams
 from drvs.ros.params import read_params
+from drvs.testing import ManualClock
 from drvs.vision.params import VisionSystemParams
 
 
