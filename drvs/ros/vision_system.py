@@ -123,9 +123,8 @@ class VisionSystemNode:
             params.min_watch_period, params.max_watch_duration, params.change_tolerance, params.max_watches
         )
         self.registration = Registration(params.move_threshold, params.retry_period)
-        self.servers = ServerList(
-            params.register_services, return_after=params.server_return
-        )  # guarded by the registration thread
+        # Guarded by the registration thread.
+        self.servers = ServerList(params.register_services, return_after=params.server_return)
         self._register_clients: dict[str, ServiceClient] = {}
 
     # -- lifecycle -----------------------------------------------------------------------------
