@@ -25,7 +25,7 @@ from drvs.ros.node import debug_logged
 from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient
 from drvs.server.fusion import Delivery
 from drvs.server.registry import Registration, Registry
-from drvs.server.sites import callback_uri, direct_uri
+from drvs.server.sites import callback_uri, direct_uri, remote
 from drvs.server.watch_table import ONE_SHOT, WITHDRAWAL, Forward, Watch
 from drvs.srv import (
     DetectObjectBoundary,
@@ -84,10 +84,10 @@ class Outgoing:
         self._data: bytes | None = None
         self._remote_data: bytes | None = None
 
-    def serialized(self, remote: bool = False) -> bytes:
+    def serialized(self, other_site: bool = False) -> bytes:
         """The request's bytes, for a vision system of another site with ``callback_uri`` filled
         in (two threads may make them at once: the same bytes)."""
-        if not remote:
+        if not other_site:
             if self._data is None:
                 self._data = _serialized(self.request)
             return self._data
@@ -172,7 +172,7 @@ class Forwarder:
     def _callback_uri(self, entry: Registration, callback_service: str) -> str | None:
         """The ``callback_uri`` of a watch's forward to ``entry``: '' at this site, the callback
         service's address at another; None when it cannot be resolved (the forward waits)."""
-        if direct_uri(self.site, entry.site, entry.instance) is None or self.resolve_callback is None:
+        if not remote(self.site, entry.site) or self.resolve_callback is None:
             return ''
         try:
             return callback_uri(self.site, entry.site, self.resolve_callback(callback_service))
@@ -206,8 +206,8 @@ class Forwarder:
                 item.on_answer(destination, answer)
             done()
 
-        remote = direct_uri(self.site, entry.site, entry.instance) is not None
-        if not client.start(item.request, self.replies, settled, serialized=item.serialized(remote)):
+        elsewhere = remote(self.site, entry.site)
+        if not client.start(item.request, self.replies, settled, serialized=item.serialized(elsewhere)):
             return False
         self.counters.add(forwards=1)
         return True
@@ -237,8 +237,8 @@ class Forwarder:
         else:
             self.counters.add(forwards=1)
             what = f'forward of {item.request.request_id!r}'
-            remote = direct_uri(self.site, entry.site, entry.instance) is not None
-            answer = self._call(destination, entry.client, item.request, what, item.serialized(remote))
+            elsewhere = remote(self.site, entry.site)
+            answer = self._call(destination, entry.client, item.request, what, item.serialized(elsewhere))
             if item.on_answer is not None:
                 item.on_answer(destination, answer)
 
