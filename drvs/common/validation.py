@@ -32,6 +32,7 @@ __all__ = [
     'ros_name',
     'global_ros_name',
     'request_fields',
+    'rosrpc_uri',
 ]
 
 _NAME = re.compile(r'^[~/]?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$')
@@ -146,6 +147,28 @@ def global_ros_name(field: str, name: str) -> str:
     if not name.startswith('/'):
         raise ValidationError(f'{field}: {name!r} is not a global ROS name (it must start with /)')
     return name
+
+
+_ROSRPC = re.compile(r'rosrpc://([A-Za-z0-9_.-]+|\[[0-9A-Fa-f:.]+\]):([0-9]{1,5})/?')
+MAX_URI_LENGTH = 300
+
+
+def rosrpc_uri(field: str, uri: str) -> str:
+    """``uri`` if it is a ``rosrpc://host:port`` address (a ROS service's, as the master gives it).
+
+    >>> rosrpc_uri('callback_uri', 'rosrpc://robot-a:41233')
+    'rosrpc://robot-a:41233'
+    >>> rosrpc_uri('callback_uri', 'http://a:1')
+    Traceback (most recent call last):
+    ...
+    drvs.common.validation.ValidationError: callback_uri: 'http://a:1' is not a rosrpc://HOST:PORT address
+    """
+    if len(uri) > MAX_URI_LENGTH:
+        raise ValidationError(f'{field}: {len(uri)} characters, longer than the limit of {MAX_URI_LENGTH}')
+    found = _ROSRPC.fullmatch(uri)
+    if found is None or not 0 < int(found.group(2)) < 65536:
+        raise ValidationError(f'{field}: {uri!r} is not a rosrpc://HOST:PORT address')
+    return uri
 
 
 def request_fields(

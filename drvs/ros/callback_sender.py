@@ -24,7 +24,8 @@ __all__ = ['CallbackSender']
 
 
 class CallbackSender:
-    """Sends CallbackCoordinates to the caller of a request or a watch.
+    """Sends CallbackCoordinates to the caller of a request or a watch: at its ``callback_uri`` when
+    the request gave one (a caller at another site), else looked up on the master.
 
     :param count: the node's counter (``callbacks``, ``callback_failures``, ``callback_bytes``,
         ``objects``).
@@ -36,7 +37,7 @@ class CallbackSender:
     def __init__(self, count: Callable[..., None], timeout: float, max_clients: int, idle: float):
         self._count = count
         self._clients = ClosingCache(
-            lambda service: ServiceClient(service, CallbackCoordinates, timeout),
+            lambda key: ServiceClient(key[0], CallbackCoordinates, timeout, uri=key[1] or None),
             maxsize=max_clients,
             ttl=idle,
         )
@@ -61,7 +62,7 @@ class CallbackSender:
         )
         buffer = io.BytesIO()
         request.serialize(buffer)  # once: counted, then sent as it is
-        client = self._clients.get(asked.callback_service)
+        client = self._clients.get((asked.callback_service, asked.callback_uri))
         self.period.add('attempted')
         try:
             client.call(request, serialized=buffer.getvalue())

@@ -36,6 +36,7 @@ from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration
 from drvs.server.request_check import AlgorithmNames, check_supported, rate_limited, request_fields
 from drvs.server.shared_registry import SharedRegistry
+from drvs.server.sites import remote, requested_callback_uri
 from drvs.server.tracker import TrackerSettings
 from drvs.server.watch_sharing import WatchSharing, open_registry
 from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
@@ -91,6 +92,12 @@ class DrvsServer:
         self.node = NodeScaffold(self.health, counters=STATS_FIELDS)
         replica = f'{rospy.get_name()}@{socket.gethostname()}:{os.getpid()}'
         self.registry = open_registry(settings, replica)
+        self.checks = MasterChecks(
+            settings.check_timeout,
+            settings.unavailable_retry_after,
+            settings.callback_cache,
+            settings.callback_memory,
+        )
         self.forwarder = Forwarder(
             settings.forward_timeout,
             self.registry,
@@ -98,6 +105,8 @@ class DrvsServer:
             self._removed,
             self._undelivered,
             on_refused=self._fused_watch_refused,
+            site=settings.site,
+            resolve_callback=self.checks.callback,
         )
         self.dispatcher = Dispatcher(
             self.forwarder.send,
@@ -128,12 +137,6 @@ class DrvsServer:
         if isinstance(self.registry, SharedRegistry):
             self.registry.make_client = self.forwarder.make_client
         self.rate_limiter = RateLimiter(settings.max_requests_per_s, settings.burst)
-        self.checks = MasterChecks(
-            settings.check_timeout,
-            settings.unavailable_retry_after,
-            settings.callback_cache,
-            settings.callback_memory,
-        )
         self.registrar = Registrar(
             self.registry,
             rospy.get_name(),
@@ -306,9 +309,16 @@ class DrvsServer:
         entry = self.registry.get(service)
         return None if entry is None else entry.field_of_view
 
-    def _check_callback(self, service: str) -> None:
-        """Check the callback service, unless verified lately (:meth:`MasterChecks.callback`)."""
-        self.checks.callback(service)
+    def _check_callback(self, request) -> str:
+        """Check a request's callback service, unless verified lately (:meth:`MasterChecks.callback`);
+        its address on our master. A caller leaves ``callback_uri`` empty (:mod:`drvs.server.sites`)."""
+        requested_callback_uri(request.callback_uri)
+        return self.checks.callback(request.callback_service)
+
+    def _any_remote(self, names: list[str]) -> bool:
+        """Whether one of the vision systems ``names`` is at another site than this server."""
+        entries = [self.registry.get(service) for service in names]
+        return any(entry is not None and remote(self.settings.site, entry.site) for entry in entries)
 
     # -- requests ----------------------------------------------------------------------------
     def handle_detect(self, request) -> DetectObjectBoundaryResponse:
@@ -331,7 +341,7 @@ class DrvsServer:
         if limited:
             raise limited
         algorithm, region = self._request_fields(request)
-        self._check_callback(request.callback_service)
+        callback_uri = self._check_callback(request)
         names = self.registry.match(region, algorithm)
         if request.fused:
             return self._detect_fused(request, algorithm, region, names)
@@ -339,7 +349,8 @@ class DrvsServer:
             return self._sent_to_none(region, algorithm)
         # The request itself is forwarded: every field unchanged (the caller's connection
         # header is not part of the message). They are sent once the reply is out.
-        accepted, skipped = self.dispatcher.submit(names, Outgoing(request), wake=False)  # raises Busy
+        outgoing = Outgoing(request, callback_uri=callback_uri)
+        accepted, skipped = self.dispatcher.submit(names, outgoing, wake=False)  # raises Busy
         self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
         if skipped and accepted:
             self.node.log_throttled(
@@ -385,6 +396,8 @@ class DrvsServer:
             request_id=wire_id,
             fused=True,  # the vision system calls back even when it finds nothing
         )
+        # A vision system at another site calls our fusion service at its address on our master.
+        fusion_uri = self.checks.callback(self.fusion.service_name) if self._any_remote(names) else ''
 
         def settled(vision_system: str, reply) -> None:
             with self.fusion.lock:
@@ -395,7 +408,9 @@ class DrvsServer:
             self.fusion.wake.set()
 
         try:
-            accepted, skipped = self.dispatcher.submit(names, Outgoing(forward, settled), wake=False)
+            accepted, skipped = self.dispatcher.submit(
+                names, Outgoing(forward, settled, fusion_uri), wake=False
+            )
         except Busy:
             with self.fusion.lock:
                 stage.cancel_round(wire_id)
@@ -492,7 +507,7 @@ class DrvsServer:
         key = (caller, request.request_id)
         forward_as = None
         if stands:
-            self._check_callback(request.callback_service)
+            self._check_callback(request)
             with self._watch_lock:
                 standing = self.watches.get((caller, request.request_id))
             if standing is None or standing.algorithm_name != algorithm:
@@ -576,6 +591,9 @@ class DrvsServer:
             self._close(entry)
             self._forget(entry)
             self._mark_changed()
+        if isinstance(self.registry, SharedRegistry):
+            for client in self.registry.take_retired():  # an entry of another site at a new address
+                client.close()
         if self.sharing is not None and self.sharing.follow():
             self._watch_wake.set()
         if self.registry.version != version:

@@ -95,12 +95,13 @@ class MasterChecks:
             return False
         return True
 
-    def callback(self, service: str) -> None:
-        """Check a request's callback service, unless verified lately (:class:`CallbackCheck`).
+    def callback(self, service: str) -> str:
+        """Check a request's callback service, unless verified lately (:class:`CallbackCheck`); its
+        ``rosrpc://`` address on this server's master (as found within ``~callback_cache``).
 
         :raises Refusal: as :meth:`service`, or ``UNAVAILABLE`` for one verified lately and now unknown.
         """
-        self.callbacks.check(service)
+        return self.callbacks.check(service)
 
-    def _probe_callback(self, service: str) -> None:
-        self.service('callback_service', service, CallbackCoordinates)
+    def _probe_callback(self, service: str) -> str:
+        return self.service('callback_service', service, CallbackCoordinates).uri

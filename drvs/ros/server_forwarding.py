@@ -1,13 +1,15 @@
 """How the DRVS server's forwards reach the vision systems: the ROS side of :mod:`drvs.ros.server`.
 
 A robot's request leaves once its acknowledgement is written (:class:`ReplyFirstService`),
-serialised once for every vision system (:class:`Outgoing`); :class:`Forwarder` sends what the
-dispatcher hands it and settles each outcome against the registry. The life of a request and
-of a watch is in docs/architecture.md.
+serialised once for every vision system of a site (:class:`Outgoing`); :class:`Forwarder` sends
+what the dispatcher hands it and settles each outcome against the registry. A vision system of
+another site is called at its address, and told the callback service's (:mod:`drvs.server.sites`).
+The life of a request and of a watch is in docs/architecture.md; sites in docs/registry.md.
 """
 
 from __future__ import annotations
 
+import copy
 import io
 import time
 from collections.abc import Callable
@@ -17,12 +19,13 @@ import rospy
 
 from drvs.common.client_cache import ClosingCache
 from drvs.common.counters import Counters
-from drvs.common.status import name
+from drvs.common.status import Refusal, name
 from drvs.ros.conversions import box_to_msg
 from drvs.ros.node import debug_logged
 from drvs.ros.service_client import ReplyLoop, ServiceCallError, ServiceClient
 from drvs.server.fusion import Delivery
 from drvs.server.registry import Registration, Registry
+from drvs.server.sites import callback_uri, direct_uri
 from drvs.server.watch_table import ONE_SHOT, WITHDRAWAL, Forward, Watch
 from drvs.srv import (
     DetectObjectBoundary,
@@ -69,22 +72,36 @@ class ReplyFirstService(rospy.Service):
 
 
 class Outgoing:
-    """A robot's request on its way to the vision systems: serialised once, for all of them."""
+    """A robot's request on its way to the vision systems: serialised once for those of this site,
+    once for those of other sites (with ``callback_uri``, the address of its callback service)."""
 
-    __slots__ = ('request', 'on_answer', '_data')
+    __slots__ = ('request', 'on_answer', 'callback_uri', '_data', '_remote_data')
 
-    def __init__(self, request: DetectObjectBoundaryRequest, on_answer=None):
+    def __init__(self, request: DetectObjectBoundaryRequest, on_answer=None, callback_uri: str = ''):
         self.request = request
         self.on_answer = on_answer  # called with (vision system, its answer or None) when settled
+        self.callback_uri = callback_uri
         self._data: bytes | None = None
+        self._remote_data: bytes | None = None
 
-    def serialized(self) -> bytes:
-        """The request's bytes (two threads may make them at once: the same bytes)."""
-        if self._data is None:
-            buffer = io.BytesIO()
-            self.request.serialize(buffer)
-            self._data = buffer.getvalue()
-        return self._data
+    def serialized(self, remote: bool = False) -> bytes:
+        """The request's bytes, for a vision system of another site with ``callback_uri`` filled
+        in (two threads may make them at once: the same bytes)."""
+        if not remote:
+            if self._data is None:
+                self._data = _serialized(self.request)
+            return self._data
+        if self._remote_data is None:
+            request = copy.copy(self.request)
+            request.callback_uri = self.callback_uri
+            self._remote_data = _serialized(request)
+        return self._remote_data
+
+
+def _serialized(request) -> bytes:
+    buffer = io.BytesIO()
+    request.serialize(buffer)
+    return buffer.getvalue()
 
 
 class Forwarder:
@@ -99,6 +116,10 @@ class Forwarder:
     :param deliver: sends the fusion stage's callback to a robot (items of type
         :class:`~drvs.server.fusion.Delivery`, queued for the robot's callback service).
     :param on_refused: called with a fused watch's forward and the vision system's refusal.
+    :param site: this server's site (:mod:`drvs.server.sites`).
+    :param resolve_callback: ``resolve_callback(service)``: the ``rosrpc://`` address of a callback
+        service on this server's master, for a watch's forward to a vision system of another site;
+        raises :class:`~drvs.common.status.Refusal` when it cannot.
     """
 
     def __init__(
@@ -110,7 +131,11 @@ class Forwarder:
         on_undelivered: Callable[[Forward], None],
         deliver: Callable[[Delivery], None] | None = None,
         on_refused: Callable[[Forward, object], None] | None = None,
+        site: str = '',
+        resolve_callback: Callable[[str], str] | None = None,
     ):
+        self.site = site
+        self.resolve_callback = resolve_callback
         self.deliver = deliver
         self.on_refused = on_refused
         self.forward_timeout = forward_timeout
@@ -129,12 +154,37 @@ class Forwarder:
         self.replies.stop(timeout=timeout)
         self.watch_clients.clear()
 
-    def make_client(self, service: str) -> ServiceClient:
-        """The connection to a vision system's DetectObjectBoundary (no I/O until used)."""
-        return ServiceClient(service, DetectObjectBoundary, self.forward_timeout, caller_id=rospy.get_name())
+    def make_client(self, service: str, uri: str | None = None) -> ServiceClient:
+        """The connection to a vision system's DetectObjectBoundary (no I/O until used); ``uri``: its
+        address, for one of another site (our master does not know it)."""
+        return ServiceClient(
+            service, DetectObjectBoundary, self.forward_timeout, caller_id=rospy.get_name(), uri=uri
+        )
 
-    def _make_watch_client(self, service: str) -> ServiceClient:
-        return ServiceClient(service, WatchObjectBoundary, self.forward_timeout, caller_id=rospy.get_name())
+    def _make_watch_client(self, key: tuple[str, str | None]) -> ServiceClient:
+        """The connection to a watch service (its name, and its address at another site: the address
+        of the vision system's DetectObjectBoundary, as a ROS node serves all its services on one port)."""
+        service, uri = key
+        return ServiceClient(
+            service, WatchObjectBoundary, self.forward_timeout, caller_id=rospy.get_name(), uri=uri
+        )
+
+    def _callback_uri(self, entry: Registration, callback_service: str) -> str | None:
+        """The ``callback_uri`` of a watch's forward to ``entry``: '' at this site, the callback
+        service's address at another; None when it cannot be resolved (the forward waits)."""
+        if direct_uri(self.site, entry.site, entry.instance) is None or self.resolve_callback is None:
+            return ''
+        try:
+            return callback_uri(self.site, entry.site, self.resolve_callback(callback_service))
+        except Refusal as refusal:
+            rospy.logwarn(
+                'cannot forward to %s at site %s: its callback %s: %s',
+                entry.service_name,
+                entry.site,
+                callback_service,
+                refusal.message,
+            )
+            return None
 
     def begin(self, destination: str, item, done) -> bool:
         """Send a robot's request without waiting (the dispatcher's ``begin``, on whichever thread
@@ -156,7 +206,8 @@ class Forwarder:
                 item.on_answer(destination, answer)
             done()
 
-        if not client.start(item.request, self.replies, settled, serialized=item.serialized()):
+        remote = direct_uri(self.site, entry.site, entry.instance) is not None
+        if not client.start(item.request, self.replies, settled, serialized=item.serialized(remote)):
             return False
         self.counters.add(forwards=1)
         return True
@@ -175,25 +226,40 @@ class Forwarder:
         if entry is None or entry.client is None:  # removed while the forward was queued
             return
         if isinstance(item, Forward):
+            uri = self._callback_uri(entry, item.watch.forwarded()[0])
+            if uri is None:
+                return  # the watch table sends the next one-shot when it is due
             self.counters.add(forwards=1, fallback_forwards=1)
             what = f'one-shot of watch {item.watch.request_id!r}'
-            answer = self._call(destination, entry.client, one_shot_request(item.watch), what)
+            answer = self._call(destination, entry.client, one_shot_request(item.watch, uri), what)
             if answer is not None and not answer.accepted and item.watch.forward_as and self.on_refused:
                 self.on_refused(item, answer)
         else:
             self.counters.add(forwards=1)
             what = f'forward of {item.request.request_id!r}'
-            answer = self._call(destination, entry.client, item.request, what, item.serialized())
+            remote = direct_uri(self.site, entry.site, entry.instance) is not None
+            answer = self._call(destination, entry.client, item.request, what, item.serialized(remote))
             if item.on_answer is not None:
                 item.on_answer(destination, answer)
 
     def _send_watch(self, destination: str, forward: Forward) -> None:
         service = forward.vision_system
-        if forward.kind != WITHDRAWAL and service not in self.registry:  # removed while queued
+        entry = self.registry.get(service)
+        if entry is None and forward.kind != WITHDRAWAL:  # removed while queued
             return
+        uri, route = '', None
+        if entry is not None:
+            route = direct_uri(self.site, entry.site, entry.instance)
+        if entry is not None:
+            resolved = self._callback_uri(entry, forward.watch.forwarded()[0])
+            if resolved is None and forward.kind != WITHDRAWAL:
+                self.on_undelivered(forward)
+                return
+            uri = resolved or ''  # a withdrawal names the watch as it stands (its watch ends anyway)
         self.counters.add(watch_forwards=1)
         what = f'{forward.kind} of watch {forward.watch.request_id!r}'
-        answer = self._call(service, self.watch_clients.get(destination), watch_request(forward), what)
+        client = self.watch_clients.get((destination, route))
+        answer = self._call(service, client, watch_request(forward, uri), what)
         if answer is None:
             self.on_undelivered(forward)
         elif not answer.accepted:
@@ -258,8 +324,9 @@ def watch_service_of(service: str) -> str:
     return rosgraph.names.ns_join(rosgraph.names.namespace(service), 'watch_object_boundary')
 
 
-def one_shot_request(watch: Watch) -> DetectObjectBoundaryRequest:
-    """The DetectObjectBoundary request that serves ``watch`` once, to a vision system without watches."""
+def one_shot_request(watch: Watch, callback_uri: str = '') -> DetectObjectBoundaryRequest:
+    """The DetectObjectBoundary request that serves ``watch`` once, to a vision system without watches
+    (``callback_uri``: the callback service's address, for one of another site)."""
     callback_service, request_id = watch.forwarded()
     return DetectObjectBoundaryRequest(
         algorithm=watch.algorithm,
@@ -267,11 +334,13 @@ def one_shot_request(watch: Watch) -> DetectObjectBoundaryRequest:
         callback_service=callback_service,
         request_id=request_id,
         fused=watch.forward_as is not None,
+        callback_uri=callback_uri,
     )
 
 
-def watch_request(forward: Forward) -> WatchObjectBoundaryRequest:
-    """The WatchObjectBoundary forward of ``forward`` (a new watch, a renewal or a withdrawal)."""
+def watch_request(forward: Forward, callback_uri: str = '') -> WatchObjectBoundaryRequest:
+    """The WatchObjectBoundary forward of ``forward`` (a new watch, a renewal or a withdrawal;
+    ``callback_uri``: the callback service's address, for a vision system of another site)."""
     watch = forward.watch
     callback_service, request_id = watch.forwarded()
     return WatchObjectBoundaryRequest(
@@ -283,4 +352,5 @@ def watch_request(forward: Forward) -> WatchObjectBoundaryRequest:
         duration=forward.duration,
         changes_only=watch.changes_only and watch.forward_as is None,  # fusion wants every frame
         fused=watch.forward_as is not None,
+        callback_uri=callback_uri,
     )

@@ -73,6 +73,9 @@ class ServiceClient:
         for the reply.
     :param master_uri: the master to ask (default: ROS_MASTER_URI).
     :param caller_id: the id sent in the handshake (default: this node's name).
+    :param uri: the service's ``rosrpc://host:port`` address, to connect to without asking a
+        master (a service at another site, which our master does not know); default: look
+        ``service`` up on the master at every connection.
 
     Thread-safe: calls on one client run one at a time (TCPROS carries one call
     at a time per connection).
@@ -85,6 +88,7 @@ class ServiceClient:
         timeout: float,
         master_uri: str | None = None,
         caller_id: str | None = None,
+        uri: str | None = None,
     ):
         if timeout <= 0:
             raise ValueError(f'timeout: must be positive, got {timeout}')
@@ -93,6 +97,7 @@ class ServiceClient:
         self.timeout = float(timeout)
         self.master_uri = master_uri
         self.caller_id = caller_id
+        self.uri = uri
         self.header: dict[str, str] = {}  # the service's handshake header on the current connection
         self._lock = threading.Lock()
         self._sock: socket.socket | None = None
@@ -145,7 +150,7 @@ class ServiceClient:
         return bool(poller.poll(0))
 
     def _open(self, deadline: Deadline) -> None:
-        uri = lookup_service(self.service, deadline.left(), self.master_uri, self.caller_id)
+        uri = self.uri or lookup_service(self.service, deadline.left(), self.master_uri, self.caller_id)
         sock = connect(self.service, uri, deadline)
         try:
             fields = {

@@ -28,7 +28,7 @@ from drvs.common.health import Health, vision_system_health
 from drvs.common.settings import ParamError
 from drvs.common.status import ACCEPTED, BUSY, INVALID, UNAVAILABLE, Refusal, is_temporary
 from drvs.common.status import name as status_name
-from drvs.common.validation import ValidationError, request_fields
+from drvs.common.validation import ValidationError, request_fields, rosrpc_uri
 from drvs.msg import VisionSystemStats
 from drvs.ros.callback_sender import CallbackSender
 from drvs.ros.conversions import msg_to_box, points_to_polygon
@@ -193,6 +193,8 @@ class VisionSystemNode:
                 request.callback_service,
                 self._parsed_algorithms,
             )
+            if request.callback_uri:
+                rosrpc_uri('callback_uri', request.callback_uri)
         except (AlgorithmError, ValidationError) as error:
             return self._refuse(request, Refusal(INVALID, str(error)))
         problem = self.source.unavailable()
@@ -204,7 +206,15 @@ class VisionSystemNode:
         if problem:
             return self._refuse(request, Refusal(UNAVAILABLE, problem, self.params.retry_period))
         self._count_algorithm(request.algorithm)
-        job = Job(algorithm, region, request.callback_service, request.request_id, arrival, request.fused)
+        job = Job(
+            algorithm,
+            region,
+            request.callback_service,
+            request.request_id,
+            arrival,
+            request.fused,
+            request.callback_uri,
+        )
         try:
             self._jobs.put_nowait(job)
         except queue.Full:
@@ -265,9 +275,11 @@ class VisionSystemNode:
                 request.changes_only,
                 self.algorithms,
                 request.fused,
+                request.callback_uri,
             )
             if terms is None:
-                cancelled = self.watches.cancel((request.callback_service, request.request_id))
+                key = (request.callback_service, request.request_id, request.callback_uri)
+                cancelled = self.watches.cancel(key)
                 self._count(watch_calls=1)
                 self._note_watches()
                 if cancelled:

@@ -3,7 +3,8 @@
 A request names its callback service; checking it (a master lookup and a probe, done by the
 ROS glue) costs more than the rest of the request. :class:`CallbackCheck` trusts a service
 verified within ``cache`` seconds, and remembers it for ``memory`` seconds: a check that then
-finds it unknown says ``UNAVAILABLE`` (a restarted master), not ``INVALID``. No ROS here; the
+finds it unknown says ``UNAVAILABLE`` (a restarted master), not ``INVALID``. What the probe found
+(the service's ``rosrpc://`` address, which forwards to other sites carry) is kept with it. No ROS here; the
 parameters are described in docs/nodes/drvs_server.md.
 """
 
@@ -26,7 +27,7 @@ class CallbackCheck:
     """Checks a callback service with ``probe``, unless it was verified within ``cache`` seconds.
 
     :param probe: ``probe(service)`` checks the service (known to the master, of the right type)
-        or raises :class:`~drvs.common.status.Refusal`.
+        and returns its address, or raises :class:`~drvs.common.status.Refusal`.
     :param cache: seconds a verified service is trusted without a probe.
     :param memory: seconds a verified service is remembered (at least ``cache``): a probe that
         finds it unknown within them is ``UNAVAILABLE`` with ``retry_after``, not ``INVALID``.
@@ -40,7 +41,7 @@ class CallbackCheck:
 
     def __init__(
         self,
-        probe: Callable[[str], object],
+        probe: Callable[[str], str],
         cache: float,
         memory: float,
         retry_after: float,
@@ -58,28 +59,29 @@ class CallbackCheck:
         self._lock = threading.Lock()  # guards _verified
         # Verified service -> when verified, oldest first; bounded in size and age. Not a
         # cachetools.TTLCache: every request looks here, and its reads cost more than the rest.
-        self._verified: OrderedDict[str, float] = OrderedDict()
+        self._verified: OrderedDict[str, tuple[float, str]] = OrderedDict()  # -> (when, address)
 
     def __len__(self) -> int:
         """Services remembered now (some perhaps too old, forgotten at the next verification)."""
         with self._lock:
             return len(self._verified)
 
-    def check(self, service: str) -> None:
-        """Trust ``service`` if verified within ``cache`` seconds, else probe it and remember it.
+    def check(self, service: str) -> str:
+        """Trust ``service`` if verified within ``cache`` seconds, else probe it and remember it;
+        its address as the probe found it (within ``cache`` seconds).
 
         :raises Refusal: the probe's; ``UNAVAILABLE`` instead of its ``INVALID`` for a service
             verified within ``memory`` seconds.
         """
         now = self.clock()
         with self._lock:
-            verified = self._verified.get(service)
+            verified, address = self._verified.get(service, (None, ''))
         if verified is not None and now - verified >= self.remembered:
             verified = None  # forgotten
         if verified is not None and now - verified < self.cache:
-            return
+            return address
         try:
-            self.probe(service)
+            address = self.probe(service)
         except Refusal as refusal:
             if verified is not None and refusal.status == INVALID:
                 raise Refusal(
@@ -91,9 +93,10 @@ class CallbackCheck:
             raise
         with self._lock:
             services = self._verified
-            services[service] = now
+            services[service] = (now, address)
             services.move_to_end(service)
             while services and (
-                len(services) > self.max_services or now - next(iter(services.values())) >= self.remembered
+                len(services) > self.max_services or now - next(iter(services.values()))[0] >= self.remembered
             ):
                 services.popitem(last=False)
+        return address

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drvs.common.settings import NON_NEGATIVE, POSITIVE, ParamError, Range, Settings, at_least, param
+from drvs.server.sites import MAX_SITE_LENGTH, SITE_PATTERN
 
 __all__ = ['ServerSettings']
 
@@ -19,6 +20,12 @@ REGISTRY = Range(
     '`memory` or a `postgresql://` DSN',
 )
 
+SITE = Range(
+    lambda value: len(value) <= MAX_SITE_LENGTH and SITE_PATTERN.fullmatch(value) is not None,
+    f'must be letters, digits, _ or -, at most {MAX_SITE_LENGTH} of them',
+    f'letters, digits, `_`, `-` (at most {MAX_SITE_LENGTH})',
+)
+
 
 @dataclass(frozen=True)
 class ServerSettings(Settings):
@@ -27,6 +34,12 @@ class ServerSettings(Settings):
         'where the registry lives: this process, or a PostgreSQL database shared by replicas '
         '(docs/registry.md)',
         check=REGISTRY,
+    )
+    site: str = param(
+        '',
+        'with a database: the site (ROS master) this server serves; entries of other sites are called at '
+        'their rosrpc:// address (docs/registry.md, "Sites"); empty: the only site',
+        check=SITE,
     )
     watch_takeover: float = param(
         5.0,

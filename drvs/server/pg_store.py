@@ -10,6 +10,7 @@ connects again. The schema and why it is so: docs/registry.md.
 
 from __future__ import annotations
 
+import logging
 import threading
 import uuid
 from collections.abc import Callable, Sequence
@@ -29,12 +30,15 @@ from drvs.server.shared_registry import (
 )
 from drvs.server.spatial_index import _box_geometry
 
-__all__ = ['SCHEMA_VERSION', 'PgStore', 'describe_dsn']
+__all__ = ['SCHEMA_VERSION', 'UPGRADES', 'PgStore', 'describe_dsn']
+
+logger = logging.getLogger('rosout.' + __name__)
 
 T = TypeVar('T')
 
-SCHEMA_VERSION = 1
-"""The schema this code reads and writes (table ``drvs_schema``); another one is refused."""
+SCHEMA_VERSION = 2
+"""The schema this code reads and writes (table ``drvs_schema``); an older one is upgraded
+(:data:`UPGRADES`), a newer one refused."""
 CHANGES_KEPT = 600.0
 """Seconds the change log keeps a line; a replica cut off longer reads a whole snapshot."""
 RENEW_BATCH = 500
@@ -67,7 +71,8 @@ SCHEMA = [
         instance text NOT NULL,
         watch_service boolean NOT NULL,
         expires_at float8 NOT NULL,
-        replica text NOT NULL
+        replica text NOT NULL,
+        site text NOT NULL DEFAULT ''
     ) WITH (fillfactor = 70)""",
     'CREATE INDEX drvs_vision_systems_field_of_view ON drvs_vision_systems USING gist (field_of_view)',
     """CREATE TABLE drvs_changes (
@@ -97,11 +102,27 @@ SCHEMA = [
         expires_at float8 NOT NULL,
         forward_callback bytea,
         forward_request_id bytea,
-        PRIMARY KEY (caller, request_id)
+        site text NOT NULL DEFAULT '',
+        PRIMARY KEY (site, caller, request_id)
     )""",
     'CREATE TABLE drvs_replicas (replica text PRIMARY KEY, seen float8 NOT NULL)',
 ]
-ENTRY_COLUMNS = 'outline, algorithms, provider, instance, watch_service, expires_at - ' + NOW + ', replica'
+UPGRADES = {
+    # 1 -> 2: each entry's site (docs/registry.md, "Sites"); the rows of a version-1 database were
+    # all registered at the one site there was, ''. Adding a column with a constant default
+    # rewrites nothing (PostgreSQL 11 and later).
+    # A watch is its site's: a robot's name means something on its own master only.
+    1: [
+        "ALTER TABLE drvs_vision_systems ADD COLUMN site text NOT NULL DEFAULT ''",
+        "ALTER TABLE drvs_watches ADD COLUMN site text NOT NULL DEFAULT ''",
+        'ALTER TABLE drvs_watches DROP CONSTRAINT drvs_watches_pkey, '
+        'ADD PRIMARY KEY (site, caller, request_id)',
+    ],
+}
+"""The statements that take a database from version N to N + 1, run under the schema lock."""
+ENTRY_COLUMNS = (
+    'outline, algorithms, provider, instance, watch_service, expires_at - ' + NOW + ', replica, site'
+)
 
 
 def describe_dsn(dsn: str) -> str:
@@ -127,10 +148,13 @@ class PgStore:
     :param dsn: a ``postgresql://`` connection string.
     :param clock: seconds since the epoch; default: the database's clock.
     :param replica: this server's name among the replicas (default: a new random one).
+    :param site: this server's site: the watches it saves are that site's, and it takes over only
+        those (:mod:`drvs.server.sites`).
     """
 
-    def __init__(self, dsn: str, clock: Callable[[], float] | None = None, replica: str = ''):
+    def __init__(self, dsn: str, clock: Callable[[], float] | None = None, replica: str = '', site: str = ''):
         self.dsn = dsn
+        self.site = site
         self.where = describe_dsn(dsn)
         self.clock = clock
         self.replica = replica or uuid.uuid4().hex[:12]
@@ -202,12 +226,27 @@ class PgStore:
                 connection.execute('INSERT INTO drvs_schema (version) VALUES (%s)', (SCHEMA_VERSION,))
                 return
             versions = [row[0] for row in connection.execute('SELECT version FROM drvs_schema')]
+            if len(versions) == 1 and versions[0] in UPGRADES:
+                self._upgrade(connection, versions[0])
+                return
             if versions != [SCHEMA_VERSION]:
                 raise StoreError(
                     f'~registry: the database {self.where} holds DRVS schema version '
-                    f'{", ".join(map(str, versions)) or "(none)"}; this drvs_server knows only version '
-                    f'{SCHEMA_VERSION}: run a drvs_server of that version, or give it a new database'
+                    f'{", ".join(map(str, versions)) or "(none)"}; this drvs_server knows versions '
+                    f'up to {SCHEMA_VERSION}: run a drvs_server of that version, or give it a new database'
                 )
+
+    def _upgrade(self, connection: psycopg.Connection, version: int) -> None:
+        """Take the schema from ``version`` to :data:`SCHEMA_VERSION` (in the caller's transaction,
+        under the schema lock: one replica upgrades, the others find it done)."""
+        while version < SCHEMA_VERSION:
+            for statement in UPGRADES[version]:
+                connection.execute(statement)
+            version += 1
+        connection.execute('UPDATE drvs_schema SET version = %s', (SCHEMA_VERSION,))
+        logger.warning(
+            'registry: upgraded the database %s to DRVS schema version %d', self.where, SCHEMA_VERSION
+        )
 
     def close(self) -> None:
         with self._lock:
@@ -276,6 +315,7 @@ class PgStore:
             'watch_service': entry.watch_service,
             'lease': lease,
             'replica': entry.replica or self.replica,
+            'site': entry.site,
             'now': self._now(),
         }
 
@@ -285,14 +325,15 @@ class PgStore:
                 connection.execute('SELECT pg_advisory_xact_lock(%s)', (LOG_LOCK,))
                 connection.execute(
                     f"""INSERT INTO drvs_vision_systems (service_name, field_of_view, outline, algorithms,
-                            provider, instance, watch_service, expires_at, replica)
+                            provider, instance, watch_service, expires_at, replica, site)
                         VALUES (%(name)s, ST_GeomFromWKB(%(shape)s), %(outline)s, %(algorithms)s,
-                            %(provider)s, %(instance)s, %(watch_service)s, {NOW} + %(lease)s, %(replica)s)
+                            %(provider)s, %(instance)s, %(watch_service)s, {NOW} + %(lease)s, %(replica)s,
+                            %(site)s)
                         ON CONFLICT (service_name) DO UPDATE SET field_of_view = excluded.field_of_view,
                             outline = excluded.outline, algorithms = excluded.algorithms,
                             provider = excluded.provider, instance = excluded.instance,
                             watch_service = excluded.watch_service, expires_at = excluded.expires_at,
-                            replica = excluded.replica""",
+                            replica = excluded.replica, site = excluded.site""",
                     values,
                 )
                 self._log(connection, [entry.service_name])
@@ -457,17 +498,18 @@ class PgStore:
             'left': watch.left,
             'forward_callback': _bytes(forward[0]),
             'forward_request_id': _bytes(forward[1]),
+            'site': self.site,
             'now': self._now(),
         }
         self._run(
             lambda c: c.execute(
                 f"""INSERT INTO drvs_watches (caller, request_id, owner, algorithm, algorithm_name, region,
                         callback_service, period, duration, changes_only, expires_at, forward_callback,
-                        forward_request_id)
+                        forward_request_id, site)
                     VALUES (%(caller)s, %(request_id)s, %(owner)s, %(algorithm)s, %(algorithm_name)s,
                         %(region)s, %(callback)s, %(period)s, %(duration)s, %(changes_only)s,
-                        {NOW} + %(left)s, %(forward_callback)s, %(forward_request_id)s)
-                    ON CONFLICT (caller, request_id) DO UPDATE SET owner = excluded.owner,
+                        {NOW} + %(left)s, %(forward_callback)s, %(forward_request_id)s, %(site)s)
+                    ON CONFLICT (site, caller, request_id) DO UPDATE SET owner = excluded.owner,
                         algorithm = excluded.algorithm, algorithm_name = excluded.algorithm_name,
                         region = excluded.region, callback_service = excluded.callback_service,
                         period = excluded.period, duration = excluded.duration,
@@ -481,18 +523,18 @@ class PgStore:
     def drop_watch(self, caller: str, request_id: str) -> None:
         self._run(
             lambda c: c.execute(
-                'DELETE FROM drvs_watches WHERE caller = %s AND request_id = %s AND owner = %s',
-                (_bytes(caller), _bytes(request_id), self.replica),
+                'DELETE FROM drvs_watches WHERE site = %s AND caller = %s AND request_id = %s AND owner = %s',
+                (self.site, _bytes(caller), _bytes(request_id), self.replica),
             )
         )
 
     def orphaned_watches(self, stale_after: float) -> list[StoredWatch]:
-        values = {'replica': self.replica, 'stale': stale_after, 'now': self._now()}
+        values = {'replica': self.replica, 'site': self.site, 'stale': stale_after, 'now': self._now()}
 
         def work(connection):
             return connection.execute(
                 f"""UPDATE drvs_watches SET owner = %(replica)s
-                    WHERE expires_at > {NOW} AND owner <> %(replica)s AND owner NOT IN
+                    WHERE site = %(site)s AND expires_at > {NOW} AND owner <> %(replica)s AND owner NOT IN
                         (SELECT replica FROM drvs_replicas WHERE seen > {NOW} - %(stale)s)
                     RETURNING caller, request_id, algorithm, algorithm_name, region, callback_service,
                         period, duration, changes_only, expires_at - {NOW}, forward_callback,
@@ -531,9 +573,11 @@ class PgStore:
 
 
 def _entry(name: str, row: Sequence[Any]) -> StoredEntry:
-    outline, algorithms, provider, instance, watch_service, left, replica = row
+    outline, algorithms, provider, instance, watch_service, left, replica, site = row
     points = tuple(zip(outline[0::2], outline[1::2], strict=True))
-    return StoredEntry(name, points, tuple(algorithms), provider, instance, watch_service, left, replica)
+    return StoredEntry(
+        name, points, tuple(algorithms), provider, instance, watch_service, left, replica, site
+    )
 
 
 def _bytes(text: str | None) -> bytes | None:

@@ -62,7 +62,7 @@ class Registrar:
         registry: Registry,
         server: str,
         verify: Callable[[str, str], tuple[str, bool]],
-        make_client: Callable[[str], Client],
+        make_client: Callable[[str, str | None], Client],
         on_change: Callable[[str, str], None],
         on_removed: Callable[[Registration], None],
     ):
@@ -116,6 +116,12 @@ class Registrar:
         return Registered(f'{change} {service}; lease {self.registry.lease:g} s', self.registry.lease)
 
     def _unregister(self, service: str, entry: Registration | None, caller: str) -> Registered:
+        if entry is not None and entry.site != self.registry.site:
+            raise Refusal(
+                INVALID,
+                f'service_name: {service} is registered at site {entry.site or "(unnamed)"}; '
+                'only a server of that site may unregister it',
+            )
         if entry is not None and entry.provider != caller:
             raise Refusal(
                 INVALID,

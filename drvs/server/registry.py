@@ -30,6 +30,7 @@ from drvs.algorithms import BUILTIN_NAMES
 from drvs.algorithms.base import NAME_PATTERN
 from drvs.common.status import UNAVAILABLE, Refusal
 from drvs.common.validation import ValidationError, field_of_view_polygon, region_of_interest
+from drvs.server.sites import other_site, site_name
 from drvs.server.spatial_index import FieldOfViewIndex
 
 logger = logging.getLogger('rosout.' + __name__)
@@ -105,6 +106,7 @@ class Registration:
     algorithms: frozenset[str] = _BUILTINS  # the algorithm names it runs
     client: Client | None = field(default=None, repr=False, compare=False)  # what the server forwards through
     watch_service: bool = False  # it serves drvs/WatchObjectBoundary too (:mod:`drvs.server.watch_table`)
+    site: str = ''  # the site (``~site``) of the server it registered through (:mod:`drvs.server.sites`)
 
 
 class Registry:
@@ -116,6 +118,8 @@ class Registry:
     :param max_ejection_time: cap on one ejection, seconds.
     :param clock: monotonic seconds (injectable for tests).
     :param index: the spatial index (default: a new :class:`~drvs.server.spatial_index.FieldOfViewIndex`).
+    :param site: this server's site: every registration through it is recorded there
+        (:mod:`drvs.server.sites`; '' = the only site).
     """
 
     def __init__(
@@ -126,7 +130,9 @@ class Registry:
         index: FieldOfViewIndex | None = None,
         ejection_time: float = 10.0,
         max_ejection_time: float = 300.0,
+        site: str = '',
     ):
+        site_name(site)
         if not lease > 0:
             raise ValueError(f'lease: must be positive, got {lease}')
         if max_failures < 1:
@@ -141,6 +147,7 @@ class Registry:
         self.ejection_time = float(ejection_time)
         self.max_ejection_time = float(max_ejection_time)
         self.clock = clock
+        self.site = site
         self._lock = threading.Lock()
         self._entries: dict[str, Registration] = {}
         self._failures: dict[str, int] = {}
@@ -169,7 +176,7 @@ class Registry:
         service_name: str,
         field_of_view: Sequence[Sequence[float]],
         provider: str = '',
-        make_client: Callable[[str], Client] | None = None,
+        make_client: Callable[[str, str | None], Client] | None = None,
         instance: str = '',
         algorithms: Sequence[str] = (),
         watch_service: bool = False,
@@ -181,8 +188,9 @@ class Registry:
         (both the same), ``'unregistered'`` or ``'not registered'`` (empty field
         of view for an unknown name; ``algorithms`` is then ignored). A new
         registration, a move and a change reset the failure count; a renewal does
-        not. A new entry gets its client from ``make_client(service_name)``
-        (called under the lock: it must do no I/O); a moved, changed or renewed
+        not. A new entry gets its client from ``make_client(service_name, None)``
+        (the second argument: the address to call it at directly, None for an entry of this
+        site; called under the lock: it must do no I/O); a moved, changed or renewed
         one keeps its client. An unregistered entry's client is closed by
         :meth:`unregister`'s caller: use that to remove.
 
@@ -192,8 +200,8 @@ class Registry:
             registration and passes it on with every renewal).
         :raises ValidationError: the field of view is not a valid polygon, or a name in
             ``algorithms`` is not valid.
-        :raises Refusal: ``UNAVAILABLE``, this instance of the vision system is ejected;
-            ``retry_after`` says until when.
+        :raises Refusal: ``UNAVAILABLE``, this instance of the vision system is ejected, or the
+            name is registered at another site; ``retry_after`` says until when.
         """
         if len(field_of_view) == 0:
             removed = self.unregister(service_name)
@@ -205,11 +213,13 @@ class Registry:
         points = tuple([(float(p[0]), float(p[1])) for p in field_of_view])
         with self._lock:
             now = self.clock()
+            old = self._entries.get(service_name)
+            if old is not None and old.site != self.site:
+                raise other_site(service_name, old.site, old.expires_at - now)
             self._refuse_if_ejected(service_name, instance, now)
             expires_at = now + self.lease
-            old = self._entries.get(service_name)
             if old is None:
-                client = make_client(service_name) if make_client is not None else None
+                client = make_client(service_name, None) if make_client is not None else None
             else:
                 client = old.client
             moved = old is None or old.field_of_view != points
@@ -228,6 +238,7 @@ class Registry:
                 algorithms=names,
                 client=client,
                 watch_service=watch_service,
+                site=self.site,
             )
             try:
                 self._persist(entry, change)  # a store's write; may refuse before anything changed here

@@ -22,6 +22,7 @@ from typing import Protocol
 from drvs.common.status import UNAVAILABLE, Refusal
 from drvs.common.validation import field_of_view_polygon
 from drvs.server.registry import RENEWED, Client, Registration, Registry, algorithm_names
+from drvs.server.sites import direct_uri
 from drvs.server.spatial_index import FieldOfViewIndex
 from drvs.server.watch_table import Watch
 
@@ -62,6 +63,7 @@ class StoredEntry:
     watch_service: bool = False
     lease_left: float = 0.0  # seconds left when read
     replica: str = ''  # the replica that wrote it last: the one its vision system renews through
+    site: str = ''  # the site of the servers it registers through (:mod:`drvs.server.sites`)
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,7 +165,9 @@ class SharedRegistry(Registry):
     """A registry written through ``store`` and kept current from its change log.
 
     :param store: the shared store (connected; :meth:`load` reads it).
-    :param make_client: the client of an entry another replica registered (no I/O).
+    :param make_client: ``make_client(service_name, uri)``: the client of an entry another replica
+        registered (no I/O); ``uri``: the address to call it at, for an entry of another site
+        (:func:`~drvs.server.sites.direct_uri`), else None.
     :param flush_period: seconds between two batches of renewals written to the store.
     :param sweep_period: seconds between two sweeps of expired leases (default: half a lease; a sweep
         scans every lease, 0.8 s of the database's time at a million: docs/registry.md).
@@ -183,13 +187,14 @@ class SharedRegistry(Registry):
         index: FieldOfViewIndex | None = None,
         ejection_time: float = 10.0,
         max_ejection_time: float = 300.0,
-        make_client: Callable[[str], Client] | None = None,
+        make_client: Callable[[str, str | None], Client] | None = None,
         flush_period: float = 0.5,
         sweep_period: float | None = None,
         heartbeat_period: float = 1.0,
         retry_after: float = 1.0,
+        site: str = '',
     ):
-        super().__init__(lease, max_failures, clock, index, ejection_time, max_ejection_time)
+        super().__init__(lease, max_failures, clock, index, ejection_time, max_ejection_time, site)
         self.store = store
         self.make_client = make_client
         self.flush_period = float(flush_period)
@@ -207,6 +212,8 @@ class SharedRegistry(Registry):
         self.recoveries = 0  # times the store came back (the server saves its watches again)
         self.restarted: list[str] = []  # entries another replica registered anew (a new process): the
         # server forwards their watches again (:meth:`~drvs.server.watch_table.WatchTable.forget`)
+        self.retired: list[Client] = []  # clients replaced by one to a new address: the server closes
+        # them outside the lock (:meth:`take_retired`)
 
     # -- the store's state ------------------------------------------------------------------------
     def load(self) -> None:
@@ -389,6 +396,12 @@ class SharedRegistry(Registry):
                     self._renewals.setdefault(name, at)
             raise
 
+    def take_retired(self) -> list[Client]:
+        """The clients replaced since the last call (:attr:`retired`), for the caller to close."""
+        with self._lock:
+            retired, self.retired = self.retired, []
+        return retired
+
     def follow(self) -> list[Registration]:
         """Apply the change log since the cache's position; the entries removed."""
         changes = self.store.changes(self._position)
@@ -441,6 +454,7 @@ class SharedRegistry(Registry):
             and old.algorithms == names
             and old.instance == stored.instance
             and old.watch_service == stored.watch_service
+            and old.site == stored.site
         ):
             if not mine:  # the same entry: only its provider or lease may differ
                 self._set(old, old.polygon, expires_at, stored, old.client)
@@ -451,8 +465,12 @@ class SharedRegistry(Registry):
         if old is not None and old.instance != stored.instance:
             self.restarted.append(name)
         client = old.client if old is not None else None
+        route = direct_uri(self.site, stored.site, stored.instance)
+        if client is not None and old is not None and route != direct_uri(self.site, old.site, old.instance):
+            self.retired.append(client)  # an entry of another site at a new address: a new connection
+            client = None
         if client is None and self.make_client is not None:
-            client = self.make_client(name)
+            client = self.make_client(name, route)
         entry = self._set(old, polygon, expires_at, stored, client)
         if old is None or old.field_of_view != entry.field_of_view:
             self._index.insert(name, polygon, entry.field_of_view, value=entry)
@@ -471,6 +489,7 @@ class SharedRegistry(Registry):
             algorithms=frozenset(stored.algorithms) if stored.algorithms else algorithm_names(()),
             client=client,
             watch_service=stored.watch_service,
+            site=stored.site,
         )
         self._entries[entry.service_name] = entry
         if old is not None:
@@ -488,6 +507,7 @@ def _stored(entry: Registration, replica: str) -> StoredEntry:
         entry.watch_service,
         0.0,
         replica,
+        entry.site,
     )
 
 

@@ -45,22 +45,30 @@ def open_registry(settings: ServerSettings, replica: str) -> Registry:
         max_ejection_time=settings.max_ejection_time,
     )
     if settings.registry == 'memory':
-        return Registry(**limits)
+        return Registry(site=settings.site, **limits)
     try:
         from drvs.server.pg_store import PgStore  # psycopg only when a database is asked for
     except ImportError as error:
         raise StoreError(
             f'~registry: a PostgreSQL registry needs psycopg 3 ({error}): run scripts/setup.sh --postgres'
         ) from None
-    store = PgStore(settings.registry, replica=replica)
+    store = PgStore(settings.registry, replica=replica, site=settings.site)
     store.open()
-    registry = SharedRegistry(store, retry_after=settings.unavailable_retry_after, **limits)
+    registry = SharedRegistry(
+        store, retry_after=settings.unavailable_retry_after, site=settings.site, **limits
+    )
     try:
         registry.load()
     except StoreUnavailable as error:
         store.close()
         raise StoreError(f'~registry: the registry database {store.where} did not answer: {error}') from None
-    logger.info('registry: %d vision systems from %s (replica %s)', len(registry), store.where, replica)
+    logger.info(
+        'registry: %d vision systems from %s (replica %s, site %s)',
+        len(registry),
+        store.where,
+        replica,
+        settings.site or '(unnamed)',
+    )
     return registry
 
 

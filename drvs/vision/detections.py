@@ -35,6 +35,7 @@ class Job:
     request_id: str
     arrival: float
     fused: bool = False  # for the server's fusion stage: call back even when nothing is found
+    callback_uri: str = ''  # the callback service's address (a caller at another site); '': ask the master
 
 
 class FrameDetections:

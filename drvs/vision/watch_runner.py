@@ -1,6 +1,7 @@
 """A vision system's standing requests ("watches"): which to evaluate when, and what to send back.
 
-Watches keyed by (``callback_service``, ``request_id``), granted and expired; one frame
+Watches keyed by (``callback_service``, ``request_id``, ``callback_uri``: robots of two sites may
+share names), granted and expired; one frame
 for every watch due; with ``changes_only``, a callback only when the outlines or labels
 changed (not the confidence).
 No ROS and no clock of its own (calls take ``now``); one lock, ``WatchRunner._lock``. The
@@ -33,7 +34,7 @@ import numpy as np
 
 from drvs.algorithms import AlgorithmSet, Parsed
 from drvs.common.status import BUSY, Refusal
-from drvs.common.validation import global_ros_name, request_fields, watch_terms
+from drvs.common.validation import global_ros_name, request_fields, rosrpc_uri, watch_terms
 
 logger = logging.getLogger('rosout.' + __name__)
 
@@ -56,10 +57,11 @@ class Terms:
     period: float  # seconds between evaluations (the granted one, once standing)
     changes_only: bool
     fused: bool = False  # for the server's fusion stage: call back every period, even with nothing found
+    callback_uri: str = ''  # the callback service's address (a caller at another site); '': ask the master
 
     @property
-    def key(self) -> tuple[str, str]:
-        return (self.callback_service, self.request_id)
+    def key(self) -> tuple[str, str, str]:
+        return (self.callback_service, self.request_id, self.callback_uri)
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,7 @@ def parse_watch(
     changes_only: bool,
     algorithms: AlgorithmSet | None = None,
     fused: bool = False,
+    callback_uri: str = '',
 ) -> Terms | None:
     """Check a WatchObjectBoundary request; its terms, or None for a cancel (``duration`` 0).
 
@@ -112,7 +115,18 @@ def parse_watch(
     if not watch_terms(request_id, period, duration):
         return None
     parsed, region = request_fields(algorithm, box, callback_service, algorithms)
-    return Terms(callback_service, request_id, parsed, region, float(period), bool(changes_only), bool(fused))
+    if callback_uri:
+        rosrpc_uri('callback_uri', callback_uri)
+    return Terms(
+        callback_service,
+        request_id,
+        parsed,
+        region,
+        float(period),
+        bool(changes_only),
+        bool(fused),
+        callback_uri,
+    )
 
 
 class WatchRunner:
@@ -131,7 +145,7 @@ class WatchRunner:
         self.max_duration = max_duration
         self.change_tolerance = change_tolerance
         self.max_watches = max_watches
-        self._watches: dict[tuple[str, str], _Watch] = {}
+        self._watches: dict[tuple[str, str, str], _Watch] = {}
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
@@ -167,8 +181,8 @@ class WatchRunner:
             watch.terms, watch.expires, watch.full_report = terms, now + duration, True
             return Grant(terms.period, duration, new=False)
 
-    def cancel(self, key: tuple[str, str]) -> bool:
-        """End the watch named ``key`` (callback_service, request_id); whether it stood."""
+    def cancel(self, key: tuple[str, str, str]) -> bool:
+        """End the watch named ``key`` (callback_service, request_id, callback_uri); whether it stood."""
         with self._lock:
             return self._watches.pop(key, None) is not None
 

@@ -59,8 +59,8 @@ def square(x, y, side=0.5):
         ),
         (
             DetectObjectBoundaryRequest,
-            ['algorithm', 'region_of_interest', 'callback_service', 'request_id', 'fused'],
-            ['string', 'drvs/BoundingBox', 'string', 'string', 'bool'],
+            ['algorithm', 'region_of_interest', 'callback_service', 'request_id', 'fused', 'callback_uri'],
+            ['string', 'drvs/BoundingBox', 'string', 'string', 'bool', 'string'],
         ),
         (
             DetectObjectBoundaryResponse,

@@ -258,7 +258,7 @@ def test_elevation_without_usable_depth_is_refused_saying_why_and_reported_until
 
     def ask(request_id):
         region = BoundingBox(-1.0, -1.0, 1.0, 1.0)
-        request = DetectObjectBoundaryRequest('elevation', region, '/robot/callback', request_id, False)
+        request = DetectObjectBoundaryRequest('elevation', region, '/robot/callback', request_id, False, '')
         return node._handle_detect(request)
 
     response = ask('r1')
@@ -287,7 +287,7 @@ def test_a_colour_request_does_not_look_at_a_frame_before_it_is_queued(clock):
     looked = []
     node.source.latest = lambda: looked.append(1)
     request = DetectObjectBoundaryRequest(
-        BLUE, BoundingBox(0.0, 0.0, 1.0, 1.0), '/robot/callback', 'c1', False
+        BLUE, BoundingBox(0.0, 0.0, 1.0, 1.0), '/robot/callback', 'c1', False, ''
     )
     assert node._handle_detect(request).accepted
     assert looked == []

@@ -36,7 +36,7 @@ class Registrations:
             self.registry,
             '/drvs',
             self.master,
-            make_client=lambda service: None,
+            make_client=lambda service, uri: None,
             on_change=lambda change, service: self.changes.append((change, service)),
             on_removed=self.removed.append,
         )

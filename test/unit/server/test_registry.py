@@ -167,7 +167,7 @@ def test_entry_keeps_provider_and_one_client_until_removed(registry):
         def close(self):
             self.closed = True
 
-    def make_client(name):
+    def make_client(name, uri):
         made.append(Client())
         return made[-1]
 

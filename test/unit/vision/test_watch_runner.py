@@ -177,8 +177,8 @@ def test_a_watch_expires_unless_renewed(runner):
 
 def test_cancel(runner):
     runner.stand(terms('w'), 5.0, now=0.0)
-    assert runner.cancel((CALLBACK, 'w'))
-    assert not runner.cancel((CALLBACK, 'w'))  # unknown: nothing to do
+    assert runner.cancel((CALLBACK, 'w', ''))
+    assert not runner.cancel((CALLBACK, 'w', ''))  # unknown: nothing to do
     assert runner.due(1.0) == [] and runner.next_due() is None
 
 
