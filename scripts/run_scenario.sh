@@ -143,8 +143,8 @@ done
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
 [ -z "$gateway_bind" ] || [ $gateway -eq 1 ] || fail "--gateway-bind needs --gateway"
 [ -z "$gateway_bind" ] || [[ "$gateway_bind" =~ ^(\[[0-9a-fA-F:]+\]|[^:]+):[0-9]+$ ]] || fail "--gateway-bind needs HOST:PORT, got $gateway_bind"
-[ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
 [ $sites -eq 0 ] || [ $external -eq 0 ] || fail "--sites runs a master per site: not with --external-master"
+[ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
 [ -x "$root/.venv/bin/python" ] || fail "no .venv: run scripts/setup.sh (or make demo) first"
 # Every problem of the world file at once, before anything starts (nodes/drvs_check_world).
 checked=$("$root/.venv/bin/python" "$root/nodes/drvs_check_world" "$world" 2>&1) || { echo "$checked" >&2; exit 2; }

@@ -1,0 +1,94 @@
+"""Two sites end to end: ``scripts/run_scenario.sh worlds/two_sites.yaml --sites``.
+
+Site a and site b each have a ROS master and a drvs_server on a network host of its own, both
+servers on one PostgreSQL database; site b's cameras run on master b and register with server b;
+the robot starts at site a, on master a, and its station is at site b. With per-camera answers
+(``--fused false``) the robot reaches its station without a collision, site b's cameras having
+called it back across the sites. Slow: skipped with the reason where network hosts cannot be
+made (not root) or PostgreSQL is not installed. The refusals of ``--sites`` are fast.
+"""
+
+import glob
+import json
+import re
+import subprocess
+
+import pytest
+
+from drvs.testing import RosHarness
+from drvs.testing.harness import REPO
+from drvs.testing.netns import namespaces_of, unavailable
+from drvs.testing.scenario import start_scenario
+
+WORLD = 'worlds/two_sites.yaml'
+SCRIPT = 'scripts/run_scenario.sh'
+
+
+def cannot_run() -> str | None:
+    """Why a run across sites cannot be made here, or None."""
+    reason = unavailable()
+    if reason:
+        return f'no network hosts here: {reason}'
+    if not glob.glob('/usr/lib/postgresql/*/bin/pg_ctl'):
+        return 'PostgreSQL is not installed: scripts/setup.sh --postgres'
+    return None
+
+
+def nodes_of(master_log) -> dict[str, str]:
+    """node -> its address, from a master's log (each node registers its /rosout publisher)."""
+    return dict(re.findall(r'\+PUB \[/rosout\] /(\w+) http://([\d.]+):', master_log.read_text()))
+
+
+@pytest.mark.slow
+def test_the_robot_at_site_a_reaches_its_station_at_site_b_through_site_b_cameras(ros: RosHarness):
+    reason = cannot_run()
+    if reason:
+        pytest.skip(reason)
+    run = start_scenario(ros, WORLD, '--sites', '--fused', 'false', timeout=150)
+    code, logs = run.wait(), run.logs()
+    summary = json.loads((run.out / 'summary.json').read_text())
+    assert code == 0, logs
+    assert summary['success'] is True and summary['collisions'] == 0, logs
+    # Site b's cameras answered the robot at site a: their callbacks reached it.
+    cameras = summary['vision_systems']
+    assert cameras['vs_b1']['callbacks'] > 0 and cameras['vs_b2']['callbacks'] > 0, cameras
+    (robot,) = summary['robots']
+    assert robot['callbacks'] >= cameras['vs_b1']['callbacks'] + cameras['vs_b2']['callbacks'], summary
+    # Each node on its site's master, from the host the run gave it.
+    site_a, site_b = (
+        nodes_of(run.out / 'ros_log' / 'master.log'),
+        nodes_of(run.out / 'ros_log_b' / 'master.log'),
+    )
+    assert {'drvs', 'world_sim', 'scenario_recorder', 'robot', 'vs_a1', 'vs_a2'} <= set(site_a), site_a
+    assert {'drvs', 'site_link', 'vs_b1', 'vs_b2'} <= set(site_b), site_b
+    assert not {'vs_b1', 'vs_b2'} & set(site_a) and not {'robot', 'vs_a1', 'vs_a2', 'world_sim'} & set(site_b)
+    assert site_a['drvs'] != site_b['drvs'] and site_a['vs_a1'] != site_b['vs_b1']
+    # Everything removed: the hosts and the database.
+    assert namespaces_of(f'drvs{run.runner.pid}') == [], 'a network host of the run is left'
+    assert not (run.out / 'hosts').exists() and not (run.out / 'postgres').exists()
+
+
+def run_script(*argv: str) -> subprocess.CompletedProcess:
+    return subprocess.run(['bash', SCRIPT, *argv], cwd=REPO, capture_output=True, text=True, timeout=60)
+
+
+def test_sites_with_an_external_master_is_refused(tmp_path):
+    result = run_script(WORLD, '--sites', '--external-master', '--out', str(tmp_path))
+    assert (result.returncode, result.stdout, result.stderr) == (
+        2,
+        '',
+        'run_scenario: --sites runs a master per site: not with --external-master\n',
+    )
+
+
+def test_sites_on_a_world_of_one_site_is_refused(tmp_path):
+    if unavailable():
+        pytest.skip(f'no network hosts here: {unavailable()}')  # the script says that first
+    result = run_script('worlds/obstacles.yaml', '--sites', '--out', str(tmp_path))
+    assert (result.returncode, result.stdout, result.stderr) == (
+        2,
+        '',
+        'run_scenario: --sites: no camera of '
+        f'{REPO}/worlds/obstacles.yaml names its site (site: a, site: b, ...; worlds/README.md)\n',
+    )
+    assert not (tmp_path / 'pids').exists()
