@@ -236,16 +236,16 @@ export PYTHONUNBUFFERED=1
 # further site S host master_S (its master, server and site link) and cameras_S1, ....
 # DIR/hosts names them for scripts/stop_scenario.sh.
 if [ $sites -eq 1 ]; then read -r first_site _ <<<"$site_names"; else first_site=main site_names=main; fi
-declare -A site_of=() host_of=() on_site=()  # camera -> its site, its host; site -> cameras there so far
+declare -A site_of=() host_of=() site_count=()  # camera -> its site, its host; site -> cameras there so far
 read -r -a each_site <<<"$camera_sites"
 i=0
 for camera in $cameras; do
   site=$first_site
   [ $sites -eq 0 ] || site=${each_site[$i]}
-  count=${on_site[$site]:-0}
+  count=${site_count[$site]:-0}
   group=$((count / CAMERAS_PER_HOST + 1))
   if [ "$site" = "$first_site" ]; then host_of[$camera]=cameras$group; else host_of[$camera]=cameras_$site$group; fi
-  site_of[$camera]=$site on_site[$site]=$((count + 1)) i=$((i + 1))
+  site_of[$camera]=$site site_count[$site]=$((count + 1)) i=$((i + 1))
 done
 at_master=()  # the words that run a command on host master (none without --hosts)
 declare -A site_ip=()  # site -> the address of its master's host (--hosts)
@@ -314,21 +314,25 @@ if [ $external -eq 0 ]; then
   start rosmaster master rosmaster --core -p "$port"
   master_answers 20 || { echo "run_scenario: the private rosmaster on port $port does not answer; see $out/rosmaster.log" >&2; exit 1; }
 fi
-# Each site's master and the folder its nodes log in: run a node at SITE with
-# `ROS_MASTER_URI=${master_of[SITE]} ROS_LOG_DIR=${log_of[SITE]} start ...`.
-declare -A master_of=([$first_site]=$ROS_MASTER_URI) log_of=([$first_site]=$ROS_LOG_DIR)
+# Each site's master; another site's nodes log in DIR/ros_log_SITE.
+declare -A master_of=([$first_site]=$ROS_MASTER_URI)
+on_site() {  # on_site SITE COMMAND...: COMMAND (a function too) with SITE's ROS_MASTER_URI and ROS_LOG_DIR
+  local site=$1
+  shift
+  if [ "$site" = "$first_site" ]; then "$@"; else ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=$out/ros_log_$site "$@"; fi
+}
 for site in $site_names; do
   [ "$site" != "$first_site" ] || continue
-  master_of[$site]=http://${site_ip[$site]}:11311/ log_of[$site]=$out/ros_log_$site
-  ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "rosmaster_$site" "master_$site" rosmaster --core -p 11311
-  ROS_MASTER_URI=${master_of[$site]} master_answers 20 \
+  master_of[$site]=http://${site_ip[$site]}:11311/
+  on_site "$site" start "rosmaster_$site" "master_$site" rosmaster --core -p 11311
+  on_site "$site" master_answers 20 \
     || { echo "run_scenario: site $site's rosmaster does not answer; see $out/rosmaster_$site.log" >&2; exit 1; }
 done
 echo "run_scenario: stop with Ctrl-C, or $stop_script $out if this script is killed"
 # The world decides /use_sim_time (also on an external master a slower world's run had set),
 # before any node starts: each reads it once, at its start.
 for site in $site_names; do
-  ROS_MASTER_URI=${master_of[$site]} "${at_master[@]}" "$py" -c 'import os, sys, xmlrpc.client
+  on_site "$site" "${at_master[@]}" "$py" -c 'import os, sys, xmlrpc.client
 xmlrpc.client.ServerProxy(os.environ["ROS_MASTER_URI"]).setParam("/run_scenario", "/use_sim_time", sys.argv[1] == "1")' "$sim_time"
 done
 # --sites: one database for every site's server, a private cluster on host db (scripts/postgres.sh)
@@ -403,9 +407,9 @@ copied=/world_sim/poses
 [ "$sim_time" -eq 0 ] || copied+=,/clock
 for site in $site_names; do
   [ "$site" != "$first_site" ] || continue
-  ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "drvs_server_$site" "master_$site" \
+  on_site "$site" start "drvs_server_$site" "master_$site" \
     "$py" "$root/nodes/drvs_server" __name:=drvs _registry:="$dsn" _site:="$site"
-  ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "site_link_$site" "master_$site" \
+  on_site "$site" start "site_link_$site" "master_$site" \
     "$py" "$root/nodes/drvs_site_link" __name:=site_link _master:="${master_of[$first_site]}" _topics:="$copied"
   stats=""
   for camera in $cameras; do [ "${site_of[$camera]}" != "$site" ] || stats+=,/$camera/stats; done
@@ -416,14 +420,14 @@ for camera in $cameras; do
   host=${host_of[$camera]} site=${site_of[$camera]}
   if [ "$source" != render ]; then
     depth=$([ "$source" = topic ] && echo true || echo false)
-    ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "sim_$camera" "$host" \
+    on_site "$site" start "sim_$camera" "$host" \
       "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
     reference=$([ "$source" = colour ] && echo "$out/reference_$camera.png" || true)
-    ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "$camera" "$host" \
+    on_site "$site" start "$camera" "$host" \
       "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=$depth _reference:="$reference" \
       image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
   else
-    ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=${log_of[$site]} start "$camera" "$host" \
+    on_site "$site" start "$camera" "$host" \
       "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
   fi
 done
