@@ -42,6 +42,7 @@ SECTIONS = (
     'registry',
     'registry_db',
     'replicas',
+    'sites',
     'vision',
     'elevation',
     'planner',

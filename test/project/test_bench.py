@@ -27,6 +27,7 @@ TARGETS = {
     'registry': ['match_1m_p50_us', 'match_1m_moving_over_static', 'register_1m_us'],
     'registry_db': [],
     'replicas': [],
+    'sites': [],
     'vision': ['segment_project_800x600_ms'],
     'planner': ['dstar_repair_speedup'],
     'fleet': ['watch_message_ratio'],

@@ -294,3 +294,27 @@ def test_a_colour_request_does_not_look_at_a_frame_before_it_is_queued(clock):
     request.algorithm = 'foreground'
     node._handle_detect(request)
     assert looked == [1]
+
+
+def test_a_callback_uri_is_checked_and_the_callback_goes_to_that_address(clock):
+    from drvs.msg import BoundingBox
+
+    node = vision_system(clock)
+    node.source.unavailable = lambda: None
+    node.source.latest = lambda: None
+    region = BoundingBox(0.0, 0.0, 1.0, 1.0)
+    bad = DetectObjectBoundaryRequest(BLUE, region, '/robot/callback', 'c1', False, 'robot-a:4100')
+    refused = node._handle_detect(bad)
+    assert (refused.accepted, refused.status, refused.message) == (
+        False,
+        INVALID,
+        "callback_uri: 'robot-a:4100' is not a rosrpc://HOST:PORT address",
+    )
+    good = DetectObjectBoundaryRequest(BLUE, region, '/robot/callback', 'c2', True, 'rosrpc://robot-a:4100')
+    assert node._handle_detect(good).accepted
+    asked = []
+    clients = CallbackClients()
+    clients.get = lambda key: asked.append(key) or clients
+    node.callbacks._clients, node.callbacks.markers_pub = clients, Publisher()
+    node.callbacks.send(node._jobs.get_nowait(), node.service_name, 1.0, [])
+    assert asked == [('/robot/callback', 'rosrpc://robot-a:4100')] and len(clients.requests) == 1

@@ -18,6 +18,7 @@ class Probe:
         self.calls.append(service)
         if self.refusal is not None:
             raise self.refusal
+        return f'rosrpc://{service.strip("/").replace("/", "-")}:{len(self.calls)}'
 
 
 UNKNOWN = Refusal(INVALID, 'callback_service: /robot/cb is not known to the ROS master')
@@ -137,3 +138,11 @@ def test_without_a_cache_every_check_probes(probe, clock):
 def test_max_services_must_be_positive(probe):
     with pytest.raises(ValueError, match='max_services: must be at least 1, got 0'):
         CallbackCheck(probe, 5.0, 60.0, 1.0, max_services=0)
+
+
+def test_the_address_the_probe_found_is_kept_with_the_service(check, probe, clock):
+    assert check.check('/robot/cb') == 'rosrpc://robot-cb:1'
+    clock.now += 4.9
+    assert check.check('/robot/cb') == 'rosrpc://robot-cb:1'  # trusted: the address found then
+    clock.now += 0.1
+    assert check.check('/robot/cb') == 'rosrpc://robot-cb:2'  # probed again: a restarted robot's new one

@@ -324,3 +324,16 @@ def test_ejected_counts_the_vision_systems_refused_now(registry, clock):
     assert registry.ejected() == 2
     clock.now += 10  # the first ejection lasts ejection_time: both end
     assert registry.ejected() == 0
+
+
+def test_each_entry_records_the_site_it_registered_at(clock, new_registry):
+    registry = new_registry(lease=10.0, clock=clock, site='hall-a')
+    assert registry.register('/a', square(0, 0), instance='rosrpc://h:1') == 'registered'
+    registry.sync()
+    assert [(e.service_name, e.site) for e in registry.entries()] == [('/a', 'hall-a')]
+    assert registry.register('/a', square(0, 0), instance='rosrpc://h:1') == 'renewed'
+
+
+def test_a_site_name_is_checked(clock):
+    with pytest.raises(ValueError, match="^must be letters, digits, _ or -, at most 64 of them, got 'a b'$"):
+        Registry(clock=clock, site='a b')

@@ -290,3 +290,20 @@ def test_changes_only_is_not_fooled_by_confidence_jitter(runner):
     assert not outlines_changed([(square(1, 1), '', 0.9)], [(square(1, 1), '')], 0.03)
     moved = [(square(1.1, 1), '', 0.4)]
     assert evaluate_due(runner, 2.0, {'w': moved}) == {'w': moved}
+
+
+def test_robots_of_two_sites_with_one_name_hold_two_watches(runner):
+    here = parse_watch(COLOUR, FLOOR, CALLBACK, 'w', 1.0, 30.0, False)
+    there = parse_watch(COLOUR, FLOOR, CALLBACK, 'w', 1.0, 30.0, False, callback_uri='rosrpc://robot-a:4100')
+    assert there.callback_uri == 'rosrpc://robot-a:4100' and here.key != there.key
+    runner.stand(here, 5.0, now=0.0)
+    runner.stand(there, 5.0, now=0.0)
+    assert len(runner) == 2
+    assert runner.cancel(there.key) and len(runner) == 1
+
+
+def test_a_callback_uri_that_is_not_a_rosrpc_address_is_refused():
+    with pytest.raises(
+        ValidationError, match="^callback_uri: 'robot-a:4100' is not a rosrpc://HOST:PORT address$"
+    ):
+        parse_watch(COLOUR, FLOOR, CALLBACK, 'w', 1.0, 30.0, False, callback_uri='robot-a:4100')
