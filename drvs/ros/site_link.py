@@ -128,8 +128,14 @@ class SiteLinkNode:
                     )
                 self._publish(topic, self._read(sock, size, topic, name))
         except LinkBroken as error:
-            if not self.node.stopped:
-                self.node.counters.add(broken=1)
+            if self.node.stopped:
+                return
+            self.node.counters.add(broken=1)
+            if sock is None:  # not connected: a publisher the master still lists after it died, say
+                self.node.log_throttled(
+                    (topic, name), rospy.logwarn, '%s: %s; trying again', self._caller_id, error
+                )
+            else:
                 rospy.loginfo(
                     '%s: %s; connecting again when %s lists it', self._caller_id, error, self.settings.master
                 )
