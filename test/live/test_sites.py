@@ -1,19 +1,22 @@
 """Two sites on one registry database (docs/registry.md, "Sites"): server A (~site a) on master A,
 server B (~site b) on master B, a vision system on master B registered through server B; a robot
 on master A asks server A about what only B's camera sees and is called back, one-shot, by a
-watch and fused. Neither master knows the other's services: every call across goes to a
-rosrpc:// address."""
+watch and fused, and so is a client of the HTTP gateway at site A. Neither master knows the
+other's services: every call across goes to a rosrpc:// address."""
 
+import json
 import types
+import urllib.request
 
 import psycopg
 import pytest
 
+from drvs.gateway.tokens import add_token
 from drvs.msg import BoundingBox
 from drvs.ros.service_client import ServiceClient
 from drvs.sim.world_file import load_world
 from drvs.srv import DetectObjectBoundary, WatchObjectBoundary
-from drvs.testing import RosHarness, echo, read_json_lines, wait_for
+from drvs.testing import RosHarness, echo, free_port, read_json_lines, wait_for
 
 WORLD = 'test/worlds/small.yaml'
 CALLBACK = '/robot/callback_coordinates'
@@ -27,7 +30,9 @@ def sites(postgres, tmp_path_factory):
         for table in ('drvs_vision_systems', 'drvs_ejections', 'drvs_watches'):
             if connection.execute('SELECT to_regclass(%s)', (table,)).fetchone()[0]:
                 connection.execute(f'DELETE FROM {table}')
-    output = tmp_path_factory.mktemp('sites') / 'callbacks.jsonl'
+    folder = tmp_path_factory.mktemp('sites')
+    output, token = folder / 'callbacks.jsonl', add_token(folder / 'tokens.json', 'robot')
+    url = f'http://127.0.0.1:{free_port()}'
     a, b = RosHarness(), RosHarness()
     clients = []
     try:
@@ -36,6 +41,16 @@ def sites(postgres, tmp_path_factory):
         server_b = b.start_node('nodes/drvs_server', name='drvs', params={**server, 'site': 'b'})
         recorder = a.start_node('test/nodes/callback_recorder.py', name='robot', params={'output': output})
         camera = b.start_node('nodes/vision_system', name='vs1', params={'world': WORLD})
+        gateway = a.start_node(
+            'nodes/drvs_gateway',
+            name='gateway',
+            params={
+                'bind': url.removeprefix('http://'),
+                'rosbridge_bind': 'none',
+                'tokens': folder / 'tokens.json',
+                'request_timeout': 5.0,
+            },
+        )
         b.wait_for_service(CAMERA, node=camera)
         a.wait_for_service('/drvs/detect_object_boundary', node=server_a)
         b.wait_for_service('/drvs/detect_object_boundary', node=server_b)
@@ -63,8 +78,28 @@ def sites(postgres, tmp_path_factory):
 
         # Server A matches B's camera once it has followed the change log.
         wait_for(lambda: ask('probe').vision_systems == 1, 60, "server A matching B's camera", 0.2, describe)
+
+        def http(path, body):
+            request = urllib.request.Request(
+                url + path,
+                data=json.dumps(body).encode(),
+                method='POST',
+                headers={'Authorization': f'Bearer {token}', 'Content-Type': 'application/json'},
+            )
+            with urllib.request.urlopen(request, timeout=20) as response:
+                return json.loads(response.read())
+
+        a.wait_for_service('/gateway/callback_coordinates', node=gateway)
         yield types.SimpleNamespace(
-            a=a, b=b, ask=ask, watch=watch, region=region, world=world, output=output, describe=describe
+            a=a,
+            b=b,
+            ask=ask,
+            watch=watch,
+            http=http,
+            region=region,
+            world=world,
+            output=output,
+            describe=describe,
         )
     finally:
         for client in clients:
@@ -118,3 +153,18 @@ def test_a_fused_request_at_site_a_is_fused_by_server_a_from_the_camera_of_site_
     [callback] = wait_for(lambda: callbacks(sites, 'fused'), 30, 'the fused callback', 0.1, sites.describe)
     assert callback['fused'] and callback['answered'] == [CAMERA] and callback['objects'], callback
     assert callback['vision_system'] == '/drvs'
+
+
+def test_a_client_of_the_gateway_at_site_a_is_answered_by_the_camera_of_site_b(sites):
+    width, height = sites.world.floor_size
+    answer = sites.http(
+        '/v1/detect',
+        {
+            'algorithm': sites.world.colour_models['obstacle'],
+            'region': {'min_x': 0, 'min_y': 0, 'max_x': width, 'max_y': height},
+            'wait': 5,
+        },
+    )
+    assert (answer['status'], answer['vision_systems']) == ('ACCEPTED', 1), answer
+    [callback] = answer['callbacks']
+    assert callback['vision_system'] == CAMERA and callback['objects'], callback
