@@ -5,13 +5,17 @@ servers on one PostgreSQL database; site b's cameras run on master b and registe
 the robot starts at site a, on master a, and its station is at site b. With per-camera answers
 (``--fused false``) the robot reaches its station without a collision, site b's cameras having
 called it back across the sites. Slow: skipped with the reason where network hosts cannot be
-made (not root) or PostgreSQL is not installed. The refusals of ``--sites`` are fast.
+made (not root) or PostgreSQL is not installed. The refusals of ``--sites``, and stop_scenario.sh
+removing the database a killed run left, are fast.
 """
 
 import glob
 import json
 import re
+import shutil
 import subprocess
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -92,3 +96,30 @@ def test_sites_on_a_world_of_one_site_is_refused(tmp_path):
         f'{REPO}/worlds/obstacles.yaml names its site (site: a, site: b, ...; worlds/README.md)\n',
     )
     assert not (tmp_path / 'pids').exists()
+
+
+def test_stop_scenario_stops_and_removes_the_database_a_killed_run_left(tmp_path):
+    if not glob.glob('/usr/lib/postgresql/*/bin/pg_ctl'):
+        pytest.skip('PostgreSQL is not installed: scripts/setup.sh --postgres')
+    folder = Path(tempfile.mkdtemp(prefix='drvs-sites.', dir='/tmp'))  # as run_scenario.sh --sites makes it
+    try:
+        started = subprocess.run(
+            ['bash', 'scripts/postgres.sh', 'start', str(folder)], cwd=REPO, capture_output=True, text=True
+        )
+        assert started.returncode == 0, started.stderr
+        (tmp_path / 'postgres').write_text(f'{folder}\n')
+        result = subprocess.run(
+            ['bash', 'scripts/stop_scenario.sh', str(tmp_path)], cwd=REPO, capture_output=True, text=True
+        )
+        assert (result.returncode, result.stdout) == (
+            0,
+            f'stop_scenario: stopped the database in {folder} and removed it\n',
+        ), result.stderr
+        assert not folder.exists() and not (tmp_path / 'postgres').exists()
+        assert (tmp_path / 'postgres_server.log').exists()  # the cluster's log, kept with the run's
+    finally:
+        if folder.exists():
+            subprocess.run(
+                ['bash', 'scripts/postgres.sh', 'stop', str(folder)], cwd=REPO, capture_output=True
+            )
+            shutil.rmtree(folder, ignore_errors=True)
