@@ -44,20 +44,35 @@ def nodes_of(master_log) -> dict[str, str]:
 
 
 @pytest.mark.slow
-def test_the_robot_at_site_a_reaches_its_station_at_site_b_through_site_b_cameras(ros: RosHarness):
+@pytest.mark.parametrize('variant', ['per-camera', 'fused-simulated-time-camera-topics'])
+def test_the_robot_at_site_a_reaches_its_station_at_site_b_through_site_b_cameras(ros: RosHarness, variant):
+    """``per-camera``: each camera calls the robot back itself (``--fused false``), so site b's
+    cameras call a robot at site a. The other: fused answers (site b's cameras call server a's
+    fusion callback), the world on simulated time (``/clock`` reaches site b through the site
+    link) and the cameras' images from sim_camera nodes on each site (``--camera-source topic``)."""
     reason = cannot_run()
     if reason:
         pytest.skip(reason)
-    run = start_scenario(ros, WORLD, '--sites', '--fused', 'false', timeout=150)
+    if variant == 'per-camera':
+        world, options = WORLD, ('--fused', 'false')
+    else:
+        world, options = str(ros.root / 'two_sites_slow.yaml'), ('--camera-source', 'topic')
+        Path(world).write_text((REPO / WORLD).read_text() + 'real_time_factor: 0.7\n')
+    run = start_scenario(ros, world, '--sites', *options, timeout=200)
     code, logs = run.wait(), run.logs()
     summary = json.loads((run.out / 'summary.json').read_text())
     assert code == 0, logs
     assert summary['success'] is True and summary['collisions'] == 0, logs
-    # Site b's cameras answered the robot at site a: their callbacks reached it.
+    # Site b's cameras answered the robot at site a: their callbacks reached it (or, fused,
+    # server a's fusion stage, which answers the robot).
     cameras = summary['vision_systems']
     assert cameras['vs_b1']['callbacks'] > 0 and cameras['vs_b2']['callbacks'] > 0, cameras
     (robot,) = summary['robots']
-    assert robot['callbacks'] >= cameras['vs_b1']['callbacks'] + cameras['vs_b2']['callbacks'], summary
+    if variant == 'per-camera':
+        assert robot['callbacks'] >= cameras['vs_b1']['callbacks'] + cameras['vs_b2']['callbacks'], summary
+    else:
+        # Fused: server a's tracks (/drvs/objects) were measured against ground truth.
+        assert summary['real_time_factor'] == 0.7 and summary['tracking']['periods'] > 0, summary
     # Each node on its site's master, from the host the run gave it.
     site_a, site_b = (
         nodes_of(run.out / 'ros_log' / 'master.log'),
@@ -67,6 +82,8 @@ def test_the_robot_at_site_a_reaches_its_station_at_site_b_through_site_b_camera
     assert {'drvs', 'site_link', 'vs_b1', 'vs_b2'} <= set(site_b), site_b
     assert not {'vs_b1', 'vs_b2'} & set(site_a) and not {'robot', 'vs_a1', 'vs_a2', 'world_sim'} & set(site_b)
     assert site_a['drvs'] != site_b['drvs'] and site_a['vs_a1'] != site_b['vs_b1']
+    if variant != 'per-camera':
+        assert {'sim_vs_b1', 'sim_vs_b2'} <= set(site_b) and {'sim_vs_a1', 'sim_vs_a2'} <= set(site_a)
     # Everything removed: the hosts and the database.
     assert namespaces_of(f'drvs{run.runner.pid}') == [], 'a network host of the run is left'
     assert not (run.out / 'hosts').exists() and not (run.out / 'postgres').exists()
