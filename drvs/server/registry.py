@@ -30,7 +30,7 @@ from drvs.algorithms import BUILTIN_NAMES
 from drvs.algorithms.base import NAME_PATTERN
 from drvs.common.status import UNAVAILABLE, Refusal
 from drvs.common.validation import ValidationError, field_of_view_polygon, region_of_interest
-from drvs.server.sites import other_site, site_name
+from drvs.server.sites import other_site, remote, site_name
 from drvs.server.spatial_index import FieldOfViewIndex
 
 logger = logging.getLogger('rosout.' + __name__)
@@ -365,12 +365,19 @@ class Registry:
                 self._forgiven(service_name)
 
     def record_failure(self, service_name: str) -> Registration | None:
-        """Count a failed forward; at ``max_failures`` in a row remove and eject the entry and return it."""
+        """Count a failed forward; at ``max_failures`` in a row remove and eject the entry and return it.
+
+        An entry of another site is counted but never removed from here: its own site's servers
+        judge it (forwards that fail across sites may be the network between them, and an ejection
+        would hold at its own site too); its lease ends if it is gone.
+        """
         with self._lock:
             if service_name not in self._failures:
                 return None
             self._failures[service_name] += 1
             if self._failures[service_name] < self.max_failures:
+                return None
+            if remote(self.site, self._entries[service_name].site):
                 return None
             instance = self._entries[service_name].instance
             self._ejections[service_name] = self._eject(service_name, instance)

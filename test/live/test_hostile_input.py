@@ -863,6 +863,7 @@ def detect_body(algorithm: bytes = b'colour:0,0,150,80,80,255', request_id: byte
         + framed(CALLBACK.encode())
         + framed(request_id)
         + b'\x00'  # fused: false
+        + framed(b'')  # callback_uri: empty
     )
 
 

@@ -214,3 +214,14 @@ def test_a_version_1_database_is_upgraded_in_place(dsn):
     finally:
         with psycopg.connect(dsn, autocommit=True) as admin:
             admin.execute('DROP DATABASE IF EXISTS drvs_upgrade WITH (FORCE)')
+
+
+def test_forwards_that_fail_across_sites_never_remove_the_entry(two_sites):
+    a, b = two_sites
+    b.register('/vs1', square(0, 0), provider='/vs1', instance='rosrpc://cam-b:41000')
+    a.sync()
+    for _ in range(5):
+        assert a.record_failure('/vs1') is None
+    assert a.failures('/vs1') == 5 and a.match((0.2, 0.2, 0.4, 0.4)) == ['/vs1']
+    b.sync()
+    assert b.ejected_until('/vs1') is None and '/vs1' in b
