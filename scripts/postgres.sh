@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # A private PostgreSQL + PostGIS cluster for DRVS's registry (docs/registry.md).
 #
-#   scripts/postgres.sh start DIR   create (first time) and start a cluster in DIR on a free port of
+#   scripts/postgres.sh start DIR [--listen ADDRESS/PREFIX]
+#                                   create (first time) and start a cluster in DIR on a free port of
 #                                   127.0.0.1 (again: the same port if it is free); its DSN is the
-#                                   last line on stdout
+#                                   last line on stdout. --listen: on ADDRESS too, password logins
+#                                   from its network (e.g. 10.1.2.3/24), and the DSN names ADDRESS
+#                                   (scripts/run_scenario.sh --sites: a database other hosts reach)
 #   scripts/postgres.sh stop DIR    stop it (the files stay; start again, or rm -rf DIR)
 #   scripts/postgres.sh dsn DIR     print the DSN of a started cluster
 #
@@ -16,9 +19,18 @@ set -euo pipefail
 say() { printf 'postgres.sh: %s\n' "$*" >&2; }
 die() { printf 'postgres.sh: error: %s\n' "$*" >&2; exit 2; }
 
-[ $# -eq 2 ] || die "usage: $0 start|stop|dsn DIR"
+usage="usage: $0 start DIR [--listen ADDRESS/PREFIX] | stop DIR | dsn DIR"
+[ $# -eq 2 ] || { [ $# -eq 4 ] && [ "$1" = start ] && [ "$3" = --listen ]; } || die "$usage"
 action=$1
 dir=$2
+listen=${4:-}
+network=""
+if [ -n "$listen" ]; then
+  # The address and its network, e.g. 10.1.2.3/24 -> 10.1.2.3 and 10.1.2.0/24.
+  network=$(python3 -c 'import ipaddress, sys; print(ipaddress.ip_interface(sys.argv[1]).network)' "$listen" 2>/dev/null) \
+    && [[ "$listen" =~ ^[0-9.]+/[0-9]+$ ]] || die "--listen needs an IPv4 ADDRESS/PREFIX, e.g. 10.1.2.3/24, got $listen"
+  listen=${listen%/*}
+fi
 PG_USER=drvs-pg
 bin=$(ls -d /usr/lib/postgresql/*/bin 2>/dev/null | sort -V | tail -1)
 [ -n "$bin" ] && [ -x "$bin/pg_ctl" ] || die "PostgreSQL is not installed: run scripts/setup.sh --postgres"
@@ -32,10 +44,11 @@ as_owner() {  # run "$@" as the cluster's owner
 }
 
 dsn_of() {
-  local port password
+  local port password host
   port=$(cat "$dir/port")
   password=$(cat "$dir/password")
-  printf 'postgresql://drvs:%s@127.0.0.1:%s/drvs\n' "$password" "$port"
+  host=$(cat "$dir/host" 2>/dev/null || echo 127.0.0.1)
+  printf 'postgresql://drvs:%s@%s:%s/drvs\n' "$password" "$host" "$port"
 }
 
 free_port() {
@@ -72,8 +85,21 @@ case "$action" in
       } | as_owner tee -a "$dir/data/postgresql.conf" >/dev/null
     fi
     if as_owner "$bin/pg_ctl" -D "$dir/data" status >/dev/null 2>&1; then
+      [ -z "$listen" ] || [ "$(cat "$dir/host" 2>/dev/null)" = "$listen" ] \
+        || die "the cluster in $dir runs already, not listening on $listen: stop it first"
       dsn_of
       exit 0
+    fi
+    # --listen: the address and a password login from its network (pg_hba.conf, the line marked so
+    # that the next start replaces it); without it, 127.0.0.1 only.
+    as_owner sed -i '/# postgres.sh --listen$/d' "$dir/data/pg_hba.conf"
+    addresses=127.0.0.1
+    if [ -n "$listen" ]; then
+      addresses=127.0.0.1,$listen
+      echo "host all all $network scram-sha-256  # postgres.sh --listen" | as_owner tee -a "$dir/data/pg_hba.conf" >/dev/null
+      echo "$listen" > "$dir/host"
+    else
+      rm -f "$dir/host"
     fi
     started=no
     # The port of the last start if it is still free (a restart keeps its DSN), else a free one; a free
@@ -82,7 +108,7 @@ case "$action" in
     for _ in 1 2 3 4 5; do
       port=${previous:-$(free_port)}
       previous=
-      if as_owner "$bin/pg_ctl" -D "$dir/data" -l "$dir/server.log" -w -t 30 -o "-p $port" start >/dev/null; then
+      if as_owner "$bin/pg_ctl" -D "$dir/data" -l "$dir/server.log" -w -t 30 -o "-p $port -h $addresses" start >/dev/null; then
         echo "$port" > "$dir/port"
         started=yes
         break
@@ -97,7 +123,7 @@ case "$action" in
       "${psql[@]}" -d drvs -c 'CREATE EXTENSION IF NOT EXISTS postgis' >/dev/null \
         || die "CREATE EXTENSION postgis failed: run scripts/setup.sh --postgres (postgresql-15-postgis-3)"
     fi
-    say "started on 127.0.0.1:$port (stop: $0 stop $dir)"
+    say "started on ${listen:-127.0.0.1}:$port (stop: $0 stop $dir)"
     dsn_of
     ;;
   stop)

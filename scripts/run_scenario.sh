@@ -4,7 +4,7 @@
 #   scripts/run_scenario.sh WORLD [--timeout S] [--out DIR] [--external-master] [--stay]
 #                                 [--camera-source render|topic|colour] [--requests poll|watch] [--rviz]
 #                                 [--fused true|false] [--record] [--hosts] [--robot-link RATE]
-#                                 [--gateway [--gateway-bind HOST:PORT]]
+#                                 [--gateway [--gateway-bind HOST:PORT]] [--sites]
 #   scripts/run_scenario.sh --help
 #
 # Starts a private rosmaster on a free port (or, with --external-master, uses
@@ -55,12 +55,20 @@
 # removed on exit, also on Ctrl-C or failure (and by scripts/stop_scenario.sh DIR
 # after a kill -9). --robot-link RATE (e.g. 2mbit) limits the first robot's host
 # link to RATE both ways (tc tbf), as a robot on a slow wireless link.
+# With --sites (root; network hosts as --hosts), a world whose cameras name their site runs as
+# that many sites, each with its own master and drvs_server (~site), all servers on one private
+# PostgreSQL cluster (scripts/postgres.sh, on host db; DIR/postgres names its folder). The first
+# site (of the first camera) has the hosts of --hosts: master, sim, cameras1, ... and the robots;
+# another site S has master_S (its master, its server and a drvs_site_link that copies
+# /world_sim/poses, and /clock under simulated time, from the first site's master) and
+# cameras_S1, .... On host master a drvs_site_link copies each other site's cameras' stats topics
+# for the recorder.
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 stop_script=$(dirname "$0")/stop_scenario.sh  # as the user called this one, for messages
 CAMERAS_PER_HOST=8
-synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic|colour] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]]"
+synopsis="usage: $0 WORLD [--timeout S] [--out DIR] [--external-master] [--stay] [--camera-source render|topic|colour] [--requests poll|watch] [--fused true|false] [--rviz] [--record] [--hosts] [--robot-link RATE] [--gateway [--gateway-bind HOST:PORT]] [--sites]"
 help() {
   cat <<EOF
 $synopsis
@@ -85,11 +93,13 @@ of WORLD, the scenario recorder and one blind_robot per robot of WORLD; stop the
   --record               record the run's topics into DIR/run.bag (drvs_report DIR/run.bag replays it)
   --hosts                every part on a network host of its own (Linux network namespaces; needs root)
   --robot-link RATE      with --hosts: limit the first robot's link to RATE both ways, e.g. 2mbit
+  --sites                the world's sites (its cameras' site:) each with its own master and server, on
+                         network hosts (as --hosts), the servers on one PostgreSQL database (needs root)
   -h, --help             print this help and exit
 Stop it with Ctrl-C; if this script was killed, $stop_script DIR stops what it started.
 Exit code: 0 every robot reached its station without a collision; 1 a robot failed or collided,
 the run timed out or a node crashed; 2 a usage error, no master at \$ROS_MASTER_URI, DIR in use by another run, or no
-network hosts possible with --hosts; 130 interrupted.
+network hosts possible with --hosts or --sites; 130 interrupted.
 EOF
 }
 usage() {  # a usage error: the synopsis on stderr, exit 2
@@ -102,7 +112,7 @@ fail() {  # fail MESSAGE: one line on stderr, exit 2 (before anything started)
   exit 2
 }
 
-world="" timeout="" out="" external=0 stay=0 source=render requests="" fused="" rviz=0 record=0 hosts=0 link="" gateway=0 gateway_bind=""
+world="" timeout="" out="" external=0 stay=0 source=render requests="" fused="" rviz=0 record=0 hosts=0 link="" gateway=0 gateway_bind="" sites=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --timeout) [ $# -ge 2 ] || usage; timeout=$2; shift 2 ;;
@@ -117,6 +127,7 @@ while [ $# -gt 0 ]; do
     --requests) [ $# -ge 2 ] || usage; requests=$2; shift 2 ;;
     --fused) [ $# -ge 2 ] || usage; fused=$2; shift 2 ;;
     --hosts) hosts=1; shift ;;
+    --sites) sites=1 hosts=1; shift ;;
     --robot-link) [ $# -ge 2 ] || usage; link=$2; shift 2 ;;
     -h|--help) help; exit 0 ;;
     -*) echo "run_scenario: unknown option $1" >&2; usage ;;
@@ -132,6 +143,7 @@ done
 [ -z "$link" ] || [ $hosts -eq 1 ] || fail "--robot-link needs --hosts"
 [ -z "$gateway_bind" ] || [ $gateway -eq 1 ] || fail "--gateway-bind needs --gateway"
 [ -z "$gateway_bind" ] || [[ "$gateway_bind" =~ ^(\[[0-9a-fA-F:]+\]|[^:]+):[0-9]+$ ]] || fail "--gateway-bind needs HOST:PORT, got $gateway_bind"
+[ $sites -eq 0 ] || [ $external -eq 0 ] || fail "--sites runs a master per site: not with --external-master"
 [ $hosts -eq 0 ] || [ $external -eq 0 ] || fail "--hosts runs its own master on host master: not with --external-master"
 [ -x "$root/.venv/bin/python" ] || fail "no .venv: run scripts/setup.sh (or make demo) first"
 # Every problem of the world file at once, before anything starts (nodes/drvs_check_world).
@@ -143,7 +155,7 @@ fi
 if [ $hosts -eq 1 ]; then
   # shellcheck source=scripts/hosts.sh
   source "$root/scripts/hosts.sh"
-  reason=$(hosts_check) || fail "--hosts: cannot make network hosts here: $reason"
+  reason=$(hosts_check) || fail "$([ $sites -eq 1 ] && echo --sites || echo --hosts): cannot make network hosts here: $reason"
 fi
 
 world=$(cd "$(dirname "$world")" && pwd)/$(basename "$world")
@@ -158,8 +170,12 @@ world = load_world(sys.argv[1])
 print(" ".join(c.name for c in world.vision_systems))
 print(" ".join(r.name for r in world.robots))
 print(int(world.real_time_factor < 1))
-print(math.ceil(120 / world.real_time_factor))' "$world")
-{ read -r cameras; read -r robots; read -r sim_time; read -r default_timeout; } <<<"$facts"
+print(math.ceil(120 / world.real_time_factor))
+print(" ".join(dict.fromkeys(c.site for c in world.vision_systems if c.site)))
+print(" ".join(c.site for c in world.vision_systems))' "$world")
+{ read -r cameras; read -r robots; read -r sim_time; read -r default_timeout; read -r site_names; read -r camera_sites; } <<<"$facts"
+[ $sites -eq 0 ] || [ -n "$site_names" ] \
+  || fail "--sites: no camera of $world names its site (site: a, site: b, ...; worlds/README.md)"
 timeout=${timeout:-$default_timeout}
 
 # DIR/pids: every process this run starts (PID PGID START NAME, START its start time in
@@ -169,7 +185,7 @@ pidfile=$out/pids
 exec 8<"$out"
 flock 8
 running=$(bash "$root/scripts/stop_scenario.sh" --list "$out")
-if [ -z "$running" ] && [ -f "$out/hosts" ]; then
+if [ -z "$running" ] && { [ -f "$out/hosts" ] || [ -f "$out/postgres" ]; }; then
   bash "$root/scripts/stop_scenario.sh" --quiet "$out"  # the network hosts a killed run left
 elif [ -n "$running" ]; then
   script=$(grep -m1 ' run_scenario$' <<<"$running" || true)
@@ -212,19 +228,40 @@ source "$root/scripts/env.sh"
 py="$root/.venv/bin/python"
 export PYTHONUNBUFFERED=1
 
+# The sites: with --sites the world's, the first one's (the first camera's) the site of the
+# simulation, the robots, the recorders; without, one (main). Each camera's site and host.
 # With --hosts: host master (the master, drvs_server, this script's helpers), host sim
 # (world_sim, the recorders), hosts cameras1, cameras2, ... (CAMERAS_PER_HOST vision systems
-# each) and a host per robot, named as it. DIR/hosts names them for scripts/stop_scenario.sh.
-camera_count=$(wc -w <<<"$cameras")
+# each) and a host per robot, named as it; with --sites, host db (the database) and for each
+# further site S host master_S (its master, server and site link) and cameras_S1, ....
+# DIR/hosts names them for scripts/stop_scenario.sh.
+if [ $sites -eq 1 ]; then read -r first_site _ <<<"$site_names"; else first_site=main site_names=main; fi
+declare -A site_of=() host_of=() site_count=()  # camera -> its site, its host; site -> cameras there so far
+read -r -a each_site <<<"$camera_sites"
+i=0
+for camera in $cameras; do
+  site=$first_site
+  [ $sites -eq 0 ] || site=${each_site[$i]}
+  count=${site_count[$site]:-0}
+  group=$((count / CAMERAS_PER_HOST + 1))
+  if [ "$site" = "$first_site" ]; then host_of[$camera]=cameras$group; else host_of[$camera]=cameras_$site$group; fi
+  site_of[$camera]=$site site_count[$site]=$((count + 1)) i=$((i + 1))
+done
 at_master=()  # the words that run a command on host master (none without --hosts)
+declare -A site_ip=()  # site -> the address of its master's host (--hosts)
 if [ $hosts -eq 1 ]; then
   hosts_init "drvs$$" || exit 1
   echo "$HOSTS_PREFIX" >"$out/hosts"
   master_ip=$(hosts_add master) || exit 1
+  site_ip[$first_site]=$master_ip
   hosts_add sim >/dev/null || exit 1
-  for ((i = 1; i <= (camera_count + CAMERAS_PER_HOST - 1) / CAMERAS_PER_HOST; i++)); do
-    hosts_add "cameras$i" >/dev/null || exit 1
-  done
+  if [ $sites -eq 1 ]; then
+    db_ip=$(hosts_add db) || exit 1
+    for site in $site_names; do
+      [ "$site" = "$first_site" ] || site_ip[$site]=$(hosts_add "master_$site") || exit 1
+    done
+  fi
+  for host in $(printf '%s\n' "${host_of[@]}" | sort -u); do hosts_add "$host" >/dev/null || exit 1; done
   for robot in $robots; do hosts_add "$robot" >/dev/null || exit 1; done
   [ -z "$link" ] || hosts_limit "${robots%% *}" "$link" || exit 1
   mapfile -t at_master < <(hosts_command master)
@@ -277,11 +314,38 @@ if [ $external -eq 0 ]; then
   start rosmaster master rosmaster --core -p "$port"
   master_answers 20 || { echo "run_scenario: the private rosmaster on port $port does not answer; see $out/rosmaster.log" >&2; exit 1; }
 fi
+# Each site's master; another site's nodes log in DIR/ros_log_SITE.
+declare -A master_of=([$first_site]=$ROS_MASTER_URI)
+on_site() {  # on_site SITE COMMAND...: COMMAND (a function too) with SITE's ROS_MASTER_URI and ROS_LOG_DIR
+  local site=$1
+  shift
+  if [ "$site" = "$first_site" ]; then "$@"; else ROS_MASTER_URI=${master_of[$site]} ROS_LOG_DIR=$out/ros_log_$site "$@"; fi
+}
+for site in $site_names; do
+  [ "$site" != "$first_site" ] || continue
+  master_of[$site]=http://${site_ip[$site]}:11311/
+  on_site "$site" start "rosmaster_$site" "master_$site" rosmaster --core -p 11311
+  on_site "$site" master_answers 20 \
+    || { echo "run_scenario: site $site's rosmaster does not answer; see $out/rosmaster_$site.log" >&2; exit 1; }
+done
 echo "run_scenario: stop with Ctrl-C, or $stop_script $out if this script is killed"
 # The world decides /use_sim_time (also on an external master a slower world's run had set),
 # before any node starts: each reads it once, at its start.
-"${at_master[@]}" "$py" -c 'import os, sys, xmlrpc.client
+for site in $site_names; do
+  on_site "$site" "${at_master[@]}" "$py" -c 'import os, sys, xmlrpc.client
 xmlrpc.client.ServerProxy(os.environ["ROS_MASTER_URI"]).setParam("/run_scenario", "/use_sim_time", sys.argv[1] == "1")' "$sim_time"
+done
+# --sites: one database for every site's server, a private cluster on host db (scripts/postgres.sh)
+# in a folder of /tmp that its owner, the user drvs-pg, reaches; DIR/postgres names the folder, so
+# that scripts/stop_scenario.sh stops the cluster and removes it.
+server_args=()
+if [ $sites -eq 1 ]; then
+  pg_dir=$(mktemp -d /tmp/drvs-sites.XXXXXX)
+  echo "$pg_dir" >"$out/postgres"
+  dsn=$(hosts_exec db bash "$root/scripts/postgres.sh" start "$pg_dir" --listen "$db_ip/${HOSTS_SUBNET#*/}" 2>"$out/postgres.log" | tail -n 1) \
+    || { echo "run_scenario: --sites: the database did not start; see $out/postgres.log" >&2; exit 1; }
+  server_args=(_registry:="$dsn" _site:="$first_site")
+fi
 
 if [ $record -eq 1 ]; then
   # Listed in DIR/pids as bag_recorder: stopped after every node. Ready once it subscribes to every topic.
@@ -335,21 +399,40 @@ fi
 
 # world_sim first: under simulated time it drives the clock the others wait for.
 start world_sim sim "$py" "$root/nodes/world_sim" __name:=world_sim _world:="$world"
-start drvs_server master "$py" "$root/nodes/drvs_server" __name:=drvs
-i=0
+start drvs_server master "$py" "$root/nodes/drvs_server" __name:=drvs "${server_args[@]}"
+# Every other site: its server on the same database, and a site link that brings the simulation's
+# topics its cameras render from (docs/nodes/drvs_site_link.md); on host master a link that brings
+# its cameras' stats to the recorder.
+copied=/world_sim/poses
+[ "$sim_time" -eq 0 ] || copied+=,/clock
+for site in $site_names; do
+  [ "$site" != "$first_site" ] || continue
+  on_site "$site" start "drvs_server_$site" "master_$site" \
+    "$py" "$root/nodes/drvs_server" __name:=drvs _registry:="$dsn" _site:="$site"
+  on_site "$site" start "site_link_$site" "master_$site" \
+    "$py" "$root/nodes/drvs_site_link" __name:=site_link _master:="${master_of[$first_site]}" _topics:="$copied"
+  stats=""
+  for camera in $cameras; do [ "${site_of[$camera]}" != "$site" ] || stats+=,/$camera/stats; done
+  start "site_link_from_$site" master "$py" "$root/nodes/drvs_site_link" __name:="site_link_from_$site" \
+    _master:="${master_of[$site]}" _topics:="${stats#,}"
+done
 for camera in $cameras; do
-  host=cameras$((i / CAMERAS_PER_HOST + 1)) i=$((i + 1))
+  host=${host_of[$camera]} site=${site_of[$camera]}
   if [ "$source" != render ]; then
     depth=$([ "$source" = topic ] && echo true || echo false)
-    start "sim_$camera" "$host" "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
+    on_site "$site" start "sim_$camera" "$host" \
+      "$py" "$root/nodes/sim_camera" __name:="sim_$camera" _world:="$world" _cameras:="$camera"
     reference=$([ "$source" = colour ] && echo "$out/reference_$camera.png" || true)
-    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=$depth \
-      _reference:="$reference" image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
+    on_site "$site" start "$camera" "$host" \
+      "$py" "$root/nodes/vision_system" __name:="$camera" _source:=topic _depth:=$depth _reference:="$reference" \
+      image:="/$camera/image_raw" camera_info:="/$camera/camera_info" depth:="/$camera/depth/image_raw"
   else
-    start "$camera" "$host" "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
+    on_site "$site" start "$camera" "$host" \
+      "$py" "$root/nodes/vision_system" __name:="$camera" _world:="$world"
   fi
 done
-# The case study starts once DRVS is up: every camera registered with the server.
+# The case study starts once DRVS is up: every camera registered with the server (with --sites,
+# those of every site, through its own server: the first site's server has them from the database).
 "${at_master[@]}" "$py" - "$cameras" <<'EOF' || { echo "run_scenario: the vision systems did not register; see $out/vs*.log" >&2; exit 1; }
 import sys, threading
 import rospy
@@ -410,6 +493,15 @@ else
 fi
 
 echo "run_scenario: $(basename "$world") with robots ${robots// /, } and cameras ${cameras// /, } ($source${requests:+, $requests requests}${fused:+, fused $fused}${link:+, the first robot on a $link link}); logs in $out"
+if [ $sites -eq 1 ]; then
+  described=()
+  for site in $site_names; do
+    here=""
+    for camera in $cameras; do [ "${site_of[$camera]}" != "$site" ] || here+=", $camera"; done
+    described+=("$site (master ${master_of[$site]}, cameras ${here#, })")
+  done
+  echo "run_scenario: sites $(printf '%s; ' "${described[@]}" | sed 's/; $//'); one database at host db ($db_ip)"
+fi
 started=$SECONDS
 result=timeout
 declare -A ended=()  # pid of an awaited process -> its exit code

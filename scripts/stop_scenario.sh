@@ -13,9 +13,10 @@
 # nodes newest first, then the bag recorder, then the private rosmaster, each
 # step SIGINT, then SIGTERM, then SIGKILL, with short deadlines; then whatever is
 # left of the script's process group, if the script led one. Then DIR/pids is
-# removed, and the network hosts of a --hosts run (DIR/hosts names their prefix:
-# scripts/hosts.sh's hosts_cleanup). Says what it stopped; exits 0 also when nothing
-# was running. run_scenario.sh stops its own processes through this script too.
+# removed, the database of a --sites run (DIR/postgres names its folder: stopped with
+# scripts/postgres.sh, then removed) and the network hosts of a --hosts run (DIR/hosts names
+# their prefix: scripts/hosts.sh's hosts_cleanup). Says what it stopped; exits 0 also when
+# nothing was running. run_scenario.sh stops its own processes through this script too.
 set -euo pipefail
 
 usage() {
@@ -43,6 +44,21 @@ done
 file=$dir/pids
 say() { [ $quiet -eq 1 ] || echo "stop_scenario: $*"; }
 
+remove_database() {  # the database of a --sites run, once the servers are stopped; before its host goes
+  local folder
+  [ -f "$dir/postgres" ] || return 0
+  read -r folder <"$dir/postgres"
+  if [[ "$folder" == /tmp/drvs-sites.* ]] && [ -d "$folder" ]; then
+    if [ -d "$folder/data" ]; then
+      bash "$(dirname "${BASH_SOURCE[0]}")/postgres.sh" stop "$folder" 2>/dev/null || true
+      cp "$folder/server.log" "$dir/postgres_server.log" 2>/dev/null || true
+    fi
+    rm -rf "$folder"
+  fi
+  rm -f "$dir/postgres"
+  say "stopped the database in $folder and removed it"
+}
+
 remove_hosts() {  # the network namespaces of a --hosts run, once its processes are stopped
   local prefix
   [ -f "$dir/hosts" ] || return 0
@@ -56,7 +72,7 @@ remove_hosts() {  # the network namespaces of a --hosts run, once its processes 
 
 if [ ! -f "$file" ]; then
   [ $list -eq 0 ] || exit 0
-  if [ -f "$dir/hosts" ]; then remove_hosts; else say "nothing was running: no $file"; fi
+  if [ -f "$dir/hosts" ] || [ -f "$dir/postgres" ]; then remove_database; remove_hosts; else say "nothing was running: no $file"; fi
   exit 0
 fi
 
@@ -139,7 +155,7 @@ for ((i = ${#pids[@]} - 1; i >= 0; i--)); do
       stop "$i"
       stopped+=("run_scenario (pid ${pids[$i]})")
       ;;
-    rosmaster) master+=("$i") ;;
+    rosmaster | rosmaster_*) master+=("$i") ;;  # rosmaster_SITE: another site's (--sites)
     bag_recorder) bag+=("$i") ;;
     *) nodes+=("$i") ;;
   esac
@@ -169,6 +185,7 @@ if [ -n "$script_pid" ] && [ "$script_group" = "$script_pid" ] && ! started "$sc
 fi
 
 rm -f "$file"
+remove_database
 remove_hosts
 if [ ${#stopped[@]} -eq 0 ]; then
   say "nothing was running for $dir; removed $file"

@@ -20,7 +20,7 @@ from drvs.common.settings import annotation_type
 from drvs.gateway.params import GatewaySettings
 from drvs.robot.params import RobotParams
 from drvs.server.params import ServerSettings
-from drvs.sim.params import RecorderSettings, SimCameraParams, WorldSimSettings
+from drvs.sim.params import RecorderSettings, SimCameraParams, SiteLinkSettings, WorldSimSettings
 from drvs.vision.params import VisionSystemParams
 
 NODES = {
@@ -31,6 +31,7 @@ NODES = {
     'sim_camera': SimCameraParams,
     'scenario_recorder': RecorderSettings,
     'drvs_gateway': GatewaySettings,
+    'drvs_site_link': SiteLinkSettings,
 }
 """Node name (its page: docs/nodes/NODE.md, the table between its markers) -> its settings dataclass."""
 

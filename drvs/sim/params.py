@@ -5,13 +5,32 @@ tables are generated from them (:mod:`drvs.ros.param_docs`).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
-from drvs.common.settings import POSITIVE, REQUIRED, Range, Settings, between, one_of, param
+from drvs.common.settings import POSITIVE, REQUIRED, Range, Settings, at_least, between, one_of, param
 
-__all__ = ['COMPRESSIONS', 'FACTOR', 'RecorderSettings', 'SimCameraParams', 'WorldSimSettings']
+__all__ = [
+    'COMPRESSIONS',
+    'FACTOR',
+    'RecorderSettings',
+    'SimCameraParams',
+    'SiteLinkSettings',
+    'WorldSimSettings',
+]
 
 COMPRESSIONS = ('jpeg', 'png')
+MASTER_URI = Range(
+    lambda value: re.fullmatch(r'http://[^/:\s]+:[0-9]{1,5}/?', value) is not None,
+    'must be a ROS master URI http://HOST:PORT/',
+    'http://HOST:PORT/',
+)
+GLOBAL_NAMES = Range(
+    lambda value: bool(value.strip())
+    and all(re.fullmatch(r'(/[A-Za-z]\w*)+', name.strip()) for name in value.split(',')),
+    'must be one or more global topic names (/name/name), comma-separated or a list',
+    'global names',
+)
 FACTOR = Range(lambda value: 0 < value <= 1, 'must be above 0 and at most 1', '0 < x ≤ 1')
 
 
@@ -57,3 +76,32 @@ class RecorderSettings(Settings):
     world: str = param(REQUIRED, 'the world file of the run')
     out: str = param(REQUIRED, 'the folder for `summary.json`, `trace.json`, `run.png` and `status.line`')
     cpu_period: float = param(1.0, 'time between CPU samples of every node', unit='s', check=POSITIVE)
+
+
+@dataclass(frozen=True)
+class SiteLinkSettings(Settings):
+    master: str = param(REQUIRED, "the other site's ROS master, whose topics it copies", check=MASTER_URI)
+    topics: str = param(
+        REQUIRED,
+        'the topics to copy, comma-separated (`/clock,/world_sim/poses`) or a YAML list',
+        check=GLOBAL_NAMES,
+        separator=',',
+    )
+    poll_period: float = param(
+        0.5,
+        "time between two questions to the other master for the topics' publishers",
+        unit='s',
+        check=POSITIVE,
+    )
+    timeout: float = param(
+        2.0,
+        'deadline of each call to the other master or a publisher, and of each handshake',
+        unit='s',
+        check=POSITIVE,
+    )
+    queue_size: int = param(10, 'messages of a topic waiting to be published here', check=at_least(1))
+
+    @property
+    def topic_names(self) -> tuple[str, ...]:
+        """The names in ``~topics``, in order, each once."""
+        return tuple(dict.fromkeys(name.strip() for name in self.topics.split(',') if name.strip()))

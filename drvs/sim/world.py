@@ -117,7 +117,8 @@ class Camera:
     ``distortion`` is the lens's plumb_bob model (k1, k2, p1, p2, k3), as in a
     CameraInfo's ``D``; empty for an ideal pinhole. The simulation applies it to the
     frames it publishes (:mod:`drvs.sim.lens`). ``depth_noise``: how its depth images fall short
-    of perfect (:mod:`drvs.sim.depth_noise`); None for perfect depth.
+    of perfect (:mod:`drvs.sim.depth_noise`); None for perfect depth. ``site``: the site whose
+    server it registers with (``scripts/run_scenario.sh --sites``); empty in a world of one site.
     """
 
     name: str
@@ -130,6 +131,7 @@ class Camera:
     speed: float = 0.0
     distortion: tuple[float, ...] = ()
     depth_noise: DepthNoise | None = None
+    site: str = ''
 
     @property
     def moving(self) -> bool:

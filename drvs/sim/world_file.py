@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
@@ -86,6 +87,7 @@ CAMERA_KEYS = (
     'speed',
     'distortion',
     'depth_noise',
+    'site',
 )
 DEPTH_NOISE_KEYS = tuple(field.name for field in fields(DepthNoise))
 _ALL_KEYS = frozenset(
@@ -211,6 +213,12 @@ def _is_node_name(value) -> bool:
 def _node_name(value) -> str:
     if not _is_node_name(value):
         raise _expected('a ROS node name (letters, digits, _; starting with a letter)', value)
+    return value
+
+
+def _site_name(value) -> str:
+    if not isinstance(value, str) or not re.fullmatch(r'[A-Za-z0-9_]{1,16}', value):
+        raise _expected('a site name (1 to 16 letters, digits or _)', value)
     return value
 
 
@@ -396,12 +404,29 @@ def _camera(report: Report, data, index: int) -> tuple[str, Camera] | None:
             f'expected plumb_bob coefficients [k1, k2, p1, p2, k3], each within +-10, got {list(distortion)}',
         )
     noise = _depth_noise(entry) if 'depth_noise' in data else None
+    site = entry.read('site', _site_name, default='')
     if entry.broken:
         return None
     width, height = resolution
     return label, Camera(
-        node_name, position, fov, (width, height), target, up, waypoints, speed, distortion, noise
+        node_name, position, fov, (width, height), target, up, waypoints, speed, distortion, noise, site
     )
+
+
+def _check_sites(report: Report, cameras: list[tuple[str, Camera]]) -> None:
+    """Every vision system names its site, or none does (one site): a camera left out would belong
+    to no site's server."""
+    sites = sorted({camera.site for _, camera in cameras if camera.site})
+    if not sites:
+        return
+    for label, camera in cameras:
+        if not camera.site:
+            report.add(
+                label,
+                'site',
+                f'missing: the other vision systems name their site ({", ".join(sites)}); '
+                "name this one's too",
+            )
 
 
 def _probability(value) -> float:
@@ -622,6 +647,7 @@ def load_world(path: str | Path) -> World:
     statics = [(label, body) for label, body in bodies if body.kind == 'static']
     humans = [(label, body) for label, body in bodies if body.kind == 'human']
     check_names(report, bodies, cameras)
+    _check_sites(report, cameras)
     check_tags(report, bodies)
     if floor_size is not None:
         check_floor(report, bodies, floor_size)

@@ -1,7 +1,7 @@
 """scripts/run_scenario.sh from a test: started on a :class:`RosHarness`, then awaited.
 
-Without ``--hosts`` a run uses the harness's master (``--external-master``); with it, the
-run makes its own on a network host. test/scenarios/conftest.py starts the default suite's
+Without ``--hosts`` (or ``--sites``) a run uses the harness's master (``--external-master``);
+with it, the run makes its own on a network host. test/scenarios/conftest.py starts the default suite's
 runs two at a time with these.
 """
 
@@ -46,6 +46,6 @@ class ScenarioRun:
 def start_scenario(ros: RosHarness, world: str, *options: str, timeout: float = 150) -> ScenarioRun:
     """``run_scenario.sh world options`` started into a new folder of the harness's."""
     out = ros.root / f'out{len(ros.nodes)}'
-    master = [] if '--hosts' in options else ['--external-master']
+    master = [] if {'--hosts', '--sites'} & set(options) else ['--external-master']
     argv = ['bash', SCRIPT, world, *master, *options, '--timeout', str(timeout), '--out', str(out)]
     return ScenarioRun(ros.spawn('run_scenario', argv), out, world, timeout)

@@ -35,6 +35,7 @@ OPTIONS = [
     '--robot-link',
     '--gateway',
     '--gateway-bind',
+    '--sites',
     '--help',
 ]
 

@@ -86,6 +86,41 @@ def test_a_world_loads_with_defaults(tmp_path):
     assert world.colour_models['human'] == 'colour:150,0,0,255,80,80'
 
 
+def test_a_camera_names_its_site_or_none_does(tmp_path):
+    assert load_world(write(tmp_path, BASE)).camera('vs1').site == ''  # one site
+    second = {'name': 'vs2', 'position': [1.0, 1.5, 3.0], 'fov_deg': 60, 'site': 'b'}
+    data = changed('vision_systems.0.site', 'a')
+    data['vision_systems'].append(second)
+    world = load_world(write(tmp_path, data))
+    assert [(camera.name, camera.site) for camera in world.vision_systems] == [('vs1', 'a'), ('vs2', 'b')]
+
+
+@pytest.mark.parametrize(
+    'sites, message',
+    [
+        (
+            ['a', None],
+            "vision_system 'vs2'.site: missing: the other vision systems name their site (a); "
+            "name this one's too",
+        ),
+        (
+            ['a', 'b-1'],
+            "vision_system 'vs2'.site: expected a site name (1 to 16 letters, digits or _), got 'b-1'",
+        ),
+        (['a', 2], "vision_system 'vs2'.site: expected a site name (1 to 16 letters, digits or _), got 2"),
+    ],
+)
+def test_bad_sites_are_refused(tmp_path, sites, message):
+    cameras = [
+        {'name': name, 'position': [x, 1.5, 3.0], 'fov_deg': 60} | ({} if site is None else {'site': site})
+        for name, x, site in zip(('vs1', 'vs2'), (2.0, 1.0), sites, strict=True)
+    ]
+    path = write(tmp_path, changed('vision_systems', cameras))
+    with pytest.raises(WorldError) as error:
+        load_world(path)
+    assert str(error.value) == f'{path}: {message}'
+
+
 @pytest.mark.parametrize('path', ['test/worlds/small.yaml', 'test/worlds/accuracy.yaml'])
 def test_the_test_worlds_load(path):
     assert load_world(path).vision_systems

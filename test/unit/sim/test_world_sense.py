@@ -216,7 +216,7 @@ def test_a_file_with_several_problems_names_them_all_in_the_order_of_the_file(tm
             {'vision_systems.0.fov': 60},
             [
                 "vision_system 'vs1'.fov: unknown key; did you mean fov_deg? (keys of a vision system: name, "
-                'position, fov_deg, resolution, target, up, waypoints, speed, distortion, depth_noise)'
+                'position, fov_deg, resolution, target, up, waypoints, speed, distortion, depth_noise, site)'
             ],
         ),
         (
