@@ -31,6 +31,7 @@ def test_rossrv_show_prints_the_contract(ros: RosHarness):
         'string callback_service',
         'string request_id',
         'bool fused',
+        'string callback_uri',
         '---',
         *STATUS_CONSTANTS,
         'bool accepted',
