@@ -52,6 +52,12 @@ leave 13 cm under it)."""
 PROOF = 3
 """Floor pixels seen under an object that prove room under it; the clearance is the entry height of
 the PROOF-th highest (one or two stray pixels do not lift it)."""
+NOISE_SIGMAS = 3
+"""The sensor's depth error scatters an object's side-face points out from it, up to about three
+standard deviations: the footprint the rays are walked back through reaches that much too far
+towards the camera, and their entry heights are too high by as much as the same error of the
+floor's heights (the ray's height over the floor, eye height times distance walked over distance
+to the camera, grows as the side face's points scatter out). That much comes off the clearance."""
 LEAST_CLEARANCE = 2
 """Times MIN_HEIGHT: a lower clearance is reported as 0. The noisy top of a pallet lower than that
 shows pixels lower than MIN_HEIGHT (floor) that seem to prove room under it; a robot needs more."""
@@ -181,7 +187,7 @@ class Elevation(Algorithm):
         cell = max(MIN_CELL, CELL_FACTOR * float(np.percentile(distance, 95)) * _pixel_angle(rays))
         # The pixels that see the floor (measured lower than MIN), at their rays' point on the floor:
         # the sensor's depth error moves a point along its ray, off the floor.
-        floor = (self._posed(frame)[1], (depth > 0) & (raw < params.min_height))
+        floor = (self._posed(frame)[1], (depth > 0) & (raw < params.min_height), raw)
         return self._regions(frame, params, (x, y, z, raw[rows, cols]), cell, floor)
 
     # -- the heights -------------------------------------------------------------------------------
@@ -361,12 +367,13 @@ def _floor_of(eye: np.ndarray, rays: np.ndarray) -> np.ndarray:
 
 
 def _under(
-    grid: _Grid, floor: tuple[np.ndarray, np.ndarray], eye: np.ndarray, tops: np.ndarray
-) -> dict[int, np.ndarray]:
+    grid: _Grid, floor: tuple[np.ndarray, np.ndarray, np.ndarray], eye: np.ndarray, tops: np.ndarray
+) -> dict[int, tuple[np.ndarray, float]]:
     """Region label -> the heights at which the rays of the floor pixels seen inside its footprint
     entered it, lower than its top (``tops[label]``; 0: not an object), only those that ran
-    :data:`UNDER_CELLS` under it. ``floor``: where every pixel's ray meets the floor
-    (:func:`_floor_of`) and which pixels see the floor.
+    :data:`UNDER_CELLS` under it; and the standard deviation of those floor pixels' measured
+    heights (the sensor's noise there). ``floor``: where every pixel's ray meets the floor
+    (:func:`_floor_of`), which pixels see the floor and every pixel's measured height.
 
     A ray descends from the camera to the floor: its highest point under the object is where it
     went under it, and the object's underside there is higher still. Walked back from the floor
@@ -375,7 +382,7 @@ def _under(
     with a shelf, or the footprint off); the region's edge cell is half covered on average, so half
     a cell comes off the distance under it.
     """
-    points, seen = floor
+    points, seen, raw = floor
     rows_n, cols_n = grid.labels.shape
     fx, fy = points[..., 0], points[..., 1]
     seen = (
@@ -386,11 +393,12 @@ def _under(
         & (fy < grid.y0 + rows_n * grid.cell)
     )  # NaN (never meets the floor) compares False
     x, y, reach = (points[..., i][seen].astype(np.float64) for i in range(3))
+    measured = raw[seen]
     labels = grid.label_at(x, y)
     inside = np.nonzero(labels)[0]
     if len(inside) == 0:
         return {}
-    x, y, reach, labels = x[inside], y[inside], reach[inside], labels[inside]
+    x, y, reach, labels, measured = x[inside], y[inside], reach[inside], labels[inside], measured[inside]
     ux, uy = (eye[0] - x) / np.maximum(reach, 1e-9), (eye[1] - y) / np.maximum(reach, 1e-9)
     # Not past the point below the camera, nor above the top.
     furthest = np.minimum(reach, tops[labels] * reach / eye[2] + grid.cell / 2)
@@ -409,16 +417,25 @@ def _under(
     entered = eye[2] * run[deep] / reach[deep]
     deep[deep] = entered < tops[labels[deep]]
     entered = eye[2] * run[deep] / reach[deep]
-    return {int(label): entered[labels[deep] == label] for label in np.unique(labels[deep])}
+    found = {}
+    for label in np.unique(labels[deep]).tolist():
+        # The sensor's noise: the floor's heights below its median (those above MIN are not floor).
+        noise = max(0.0, -float(np.percentile(measured[labels == label], 16)))
+        found[label] = (entered[labels[deep] == label], noise)
+    return found
 
 
-def _clearance(entered: np.ndarray | None, top: float, underside: float, min_height: float) -> float:
+def _clearance(
+    under: tuple[np.ndarray, float] | None, top: float, underside: float, min_height: float
+) -> float:
     """An object's clearance: the entry height of the :data:`PROOF`-th highest ray seen under it
-    (:func:`_under`), no higher than its lowest side-face point (``underside``); 0 without proof
-    (unknown: on the floor) or when lower than :data:`LEAST_CLEARANCE` times ``min_height``."""
-    if entered is None or len(entered) < PROOF:
+    less :data:`NOISE_SIGMAS` times the sensor's noise there (:func:`_under`), no higher than its
+    lowest side-face point (``underside``); 0 without proof (unknown: on the floor) or when lower
+    than :data:`LEAST_CLEARANCE` times ``min_height``."""
+    if under is None or len(under[0]) < PROOF:
         return 0.0
-    clearance = float(min(np.partition(entered, -PROOF)[-PROOF], underside))
+    entered, noise = under
+    clearance = float(min(np.partition(entered, -PROOF)[-PROOF] - NOISE_SIGMAS * noise, underside))
     return clearance if clearance >= LEAST_CLEARANCE * min_height else 0.0
 
 

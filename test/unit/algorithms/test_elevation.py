@@ -93,9 +93,10 @@ def test_a_shelf_above_the_floor_is_reported_at_its_footprint_with_its_top():
     assert found.height == pytest.approx(1.25, abs=0.005)
 
 
-# The room under a shelf: a camera that sees floor under it measures its underside (from below:
-# the clearance is never more than 1 cm too high, and at most 6 cm too low here, where the floor
-# seen under it is a strip some ten pixels deep); one that sees only its top proves nothing (0).
+# The room under a shelf: a camera that sees floor under it measures its underside from below: the
+# clearance is never more than 1 cm too high, and here (the floor seen under it a strip some ten
+# pixels deep) at most 3 cm too low on clean depth, 10 cm with a Kinect-class sensor's noise (three
+# times its noise come off). One that sees only its top proves nothing (0).
 HIGH_SHELF = Box((3.3, 2.2), (0.5, 0.4, 0.1), bottom=0.35)  # the side of the view: floor seen under it
 SHELF_BELOW = replace(HIGH_SHELF, centre=(2.0, 1.5))  # straight below the camera: its top alone
 
@@ -106,7 +107,7 @@ def test_a_shelf_seen_from_the_side_of_the_view_has_its_clearance(with_noise):
     found, truth = best_match(found_on_floor(noisy(frame) if with_noise else frame), HIGH_SHELF)
     assert found.shape.intersection(truth).area / found.shape.union(truth).area > 0.85
     assert found.height == pytest.approx(HIGH_SHELF.top, abs=0.02)
-    assert HIGH_SHELF.bottom - 0.06 <= found.clearance <= HIGH_SHELF.bottom + 0.01
+    assert HIGH_SHELF.bottom - (0.10 if with_noise else 0.03) <= found.clearance <= HIGH_SHELF.bottom + 0.01
 
 
 @pytest.mark.parametrize('seed', [1, 2, 3, 4])
