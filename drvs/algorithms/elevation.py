@@ -292,10 +292,10 @@ class Elevation(Algorithm):
             tops[label] = float(np.percentile(z[mine], TOP_PERCENTILE))
             if params.max_height is None or tops[label] <= params.max_height:
                 kept.append((label, mine))
-        # Each cell's highest point (the closing's gaps: their neighbours'): a ray lower is under it.
-        highest = np.zeros(shape[0] * shape[1], np.float32)
-        np.maximum.at(highest, flat, z.astype(np.float32))
-        highest = highest.reshape(shape)
+        # Each cell's height, the mean of its points' (the closing's gaps: their neighbours' highest):
+        # a ray lower than that is under it.
+        sums = np.bincount(flat, weights=z, minlength=shape[0] * shape[1]).reshape(shape)
+        highest = (sums / np.maximum(counts, 1)).astype(np.float32)
         gaps = cv2.dilate(highest, np.ones((CLOSING, CLOSING), np.uint8))
         highest = np.where(counts > 0, highest, gaps)
         grid = _Grid(labels, highest, x0, y0, cell)
@@ -329,8 +329,8 @@ class Elevation(Algorithm):
 # -- the room under an object ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class _Grid:
-    """The floor grid's labelled regions: ``labels[row, col]`` (0: no object) and the highest
-    point ``highest[row, col]`` of the cell whose lower corner is ``(x0 + col * cell, y0 + row * cell)``."""
+    """The floor grid's labelled regions: ``labels[row, col]`` (0: no object) and the height
+    ``highest[row, col]`` of the cell whose lower corner is ``(x0 + col * cell, y0 + row * cell)``."""
 
     labels: np.ndarray
     highest: np.ndarray
@@ -343,7 +343,7 @@ class _Grid:
         return self.at(x, y)[0]
 
     def at(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The label and the highest point of the cell under each point (x, y); 0 off the grid."""
+        """The label and the height of the cell under each point (x, y); 0 off the grid."""
         cols = np.floor((x - self.x0) / self.cell).astype(np.int64)
         rows = np.floor((y - self.y0) / self.cell).astype(np.int64)
         rows_n, cols_n = self.labels.shape
@@ -355,13 +355,21 @@ class _Grid:
         return labels, highest
 
 
+NOWHERE = -1e9
+"""Where :func:`_floor_of` puts a ray that never meets the floor: far off any grid."""
+
+
 def _floor_of(eye: np.ndarray, rays: np.ndarray) -> np.ndarray:
     """Where each ray meets the floor, (H, W, 3) float32: x, y and the horizontal distance from the
-    camera; NaN for a ray that never does."""
+    camera; :data:`NOWHERE` (and 0) for a ray that never does."""
+    down = np.isfinite(rays[..., 2]) & (rays[..., 2] < 0)
     with np.errstate(divide='ignore', invalid='ignore'):
-        reach = np.where(rays[..., 2] < 0, np.float32(eye[2]) / -rays[..., 2], np.nan)
+        reach = np.where(down, np.float32(eye[2]) / -rays[..., 2], 0.0)
     dx, dy = rays[..., 0] * reach, rays[..., 1] * reach
-    floor = np.stack([eye[0] + dx, eye[1] + dy, np.hypot(dx, dy)], axis=-1).astype(np.float32)
+    floor = np.stack(
+        [np.where(down, eye[0] + dx, NOWHERE), np.where(down, eye[1] + dy, NOWHERE), np.hypot(dx, dy)],
+        axis=-1,
+    ).astype(np.float32)
     floor.setflags(write=False)
     return floor
 
@@ -377,23 +385,25 @@ def _under(
 
     A ray descends from the camera to the floor: its highest point under the object is where it
     went under it, and the object's underside there is higher still. Walked back from the floor
-    point towards the camera in half cells while it stays in the region and lower than the highest
-    point of the cell it is over (where it is higher, it passed over that part: a lower box merged
-    with a shelf, or the footprint off); the region's edge cell is half covered on average, so half
-    a cell comes off the distance under it.
+    point towards the camera a cell at a time while it stays in the region and lower than the height
+    of the cell it is over (where it is higher, it passed over that part: a lower box merged with a
+    shelf, or the footprint off); the region's edge cell is half covered on average, so half a cell
+    comes off the distance under it.
     """
+    import cv2
+
     points, seen, raw = floor
-    rows_n, cols_n = grid.labels.shape
-    fx, fy = points[..., 0], points[..., 1]
-    seen = (
-        seen
-        & (fx >= grid.x0)
-        & (fx < grid.x0 + cols_n * grid.cell)
-        & (fy >= grid.y0)
-        & (fy < grid.y0 + rows_n * grid.cell)
-    )  # NaN (never meets the floor) compares False
-    x, y, reach = (points[..., i][seen].astype(np.float64) for i in range(3))
-    measured = raw[seen]
+    # Every pixel's cell's label at once (nearest: rounding v - 0.5 is flooring v; off the grid 0),
+    # then only the floor pixels in a region, exactly.
+    scale = np.float32(1.0 / grid.cell)
+    cols = (points[..., 0] - np.float32(grid.x0 + grid.cell / 2)) * scale
+    rows = (points[..., 1] - np.float32(grid.y0 + grid.cell / 2)) * scale
+    under = cv2.remap(
+        grid.labels.astype(np.float32), cols, rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
+    )
+    chosen = np.flatnonzero(seen & (under > 0))
+    x, y, reach = (points.reshape(-1, 3)[chosen, i].astype(np.float64) for i in range(3))
+    measured = raw.ravel()[chosen]
     labels = grid.label_at(x, y)
     inside = np.nonzero(labels)[0]
     if len(inside) == 0:
@@ -402,7 +412,7 @@ def _under(
     ux, uy = (eye[0] - x) / np.maximum(reach, 1e-9), (eye[1] - y) / np.maximum(reach, 1e-9)
     # Not past the point below the camera, nor above the top.
     furthest = np.minimum(reach, tops[labels] * reach / eye[2] + grid.cell / 2)
-    step = grid.cell / 2
+    step = grid.cell
     run = np.zeros(len(x))  # metres walked back still inside the region
     walking = np.arange(len(x))
     distance = step
