@@ -264,12 +264,12 @@ class Elevation(Algorithm):
         params: ElevationParams,
         points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
         cell: float,
-        floor: tuple[np.ndarray, np.ndarray],
+        floor: tuple[np.ndarray, np.ndarray, np.ndarray],
     ) -> list[PixelObject]:
         """The raised ``points`` (x, y, filtered height, measured height) gathered on a floor grid of
         ``cell`` metres, one object per connected region of the grid; ``floor``: where every
-        pixel's ray meets the floor and which pixels see the floor (:func:`_under`): they prove
-        room under an object."""
+        pixel's ray meets the floor, which pixels see the floor and every pixel's measured height
+        (:func:`_under`): they prove room under an object."""
         import cv2
 
         x, y, z, measured = points
