@@ -295,10 +295,10 @@ class MapBuilder:
         # elevation's and foreground's regions lose the robot and station grown by the margin: their
         # outline of them, a frame older or inset by half a cell, would leave a rim.
         grown = [*bodies, *(f.outline.buffer(BODY_MARGIN) for f in (fix, station) if f is not None)]
+        self.passable = 0
         found_by_role = {
             role: self._counted(role, sources, velocities, now, own) for role in self.obstacle_roles
         }
-        self.passable = sum(len(self._proofs.get(role, ())) for role in self.obstacle_roles)
         # elevation and foreground find the other robots too, and keep where a robot stood until
         # their camera reports again: the fleet's outlines of them (and where they were) are cut out.
         others = self._other_robots(now, found_by_role.get(FLEET_ROLE), bodies)
