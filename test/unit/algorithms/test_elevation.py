@@ -110,9 +110,10 @@ def test_a_shelf_seen_from_the_side_of_the_view_has_its_clearance(with_noise):
     assert HIGH_SHELF.bottom - (0.10 if with_noise else 0.03) <= found.clearance <= HIGH_SHELF.bottom + 0.01
 
 
-@pytest.mark.parametrize('seed', [1, 2, 3, 4])
-@pytest.mark.parametrize('centre', [(3.0, 1.5), (2.0, 2.3), (3.2, 0.7), (1.0, 2.2)])
+@pytest.mark.parametrize('seed', [1, 2])
+@pytest.mark.parametrize('centre', [(3.0, 1.5), (1.0, 2.2)])
 def test_a_clearance_is_never_much_higher_than_the_underside(seed, centre):
+    """Here and there (more places: the slow test below)."""
     shelf = replace(HIGH_SHELF, centre=centre)
     (found,) = found_on_floor(noisy(depth_frame(CAMERA, [shelf]), seed=seed))
     assert found.clearance <= shelf.bottom + 0.01
