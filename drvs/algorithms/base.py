@@ -60,12 +60,20 @@ class PixelObject:
     top_height: float = 0.0
     """The object's top, metres above the floor, when the algorithm measures it; 0: unknown.
     Sent in DetectedObject.height."""
+    clearance: float = 0.0
+    """The free space under the object, metres above the floor of its underside, when the algorithm
+    measured it (``elevation``, a camera that saw floor under it); 0: on the floor or unknown.
+    Sent in DetectedObject.clearance."""
 
     def __post_init__(self) -> None:
         top = self.top_height
         if isinstance(top, bool) or not isinstance(top, int | float | np.floating) or not top >= 0.0:
             raise ValueError(f'PixelObject: top_height must be a number >= 0, got {top!r}')
         object.__setattr__(self, 'top_height', float(top))
+        under = self.clearance
+        if isinstance(under, bool) or not isinstance(under, int | float | np.floating) or not under >= 0.0:
+            raise ValueError(f'PixelObject: clearance must be a number >= 0, got {under!r}')
+        object.__setattr__(self, 'clearance', float(under))
         confidence = self.confidence
         if isinstance(confidence, bool) or not isinstance(confidence, int | float | np.floating):
             raise ValueError(f'PixelObject: confidence must be a number 0-1, got {confidence!r}')

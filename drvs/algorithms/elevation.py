@@ -3,7 +3,8 @@
 Each pixel's depth and the camera's calibrated pose give the point it sees; points higher than
 MIN_HEIGHT above the floor (z = 0 in ``map``) are dropped onto the floor, gathered on a grid and
 grouped into regions; each region is one object, reported as its footprint on the floor (not the
-perspective outline of its top) with its measured top height. Method, confidence and limits:
+perspective outline of its top) with its measured top height, and with the free space under it
+where the camera sees floor under it (its clearance). Method, confidence and limits:
 docs/design.md ("The built-in algorithms"); the string: docs/interface.md ("Algorithms").
 
 >>> Elevation().parse('0.05,1.2')
@@ -43,6 +44,26 @@ TOP_PERCENTILE = 95
 """An object's top: this percentile of its points' heights (stray pixels above it do not count)."""
 MAX_CACHED_RAYS = 4
 """Cameras whose per-pixel rays are kept (a fixed camera's never change)."""
+UNDER_CELLS = 4
+"""Grid cells a ray to the floor must run under an object's footprint to prove room under it: a
+ray that grazes it proves nothing, and a noisy sensor scatters a side face's points a few cells
+out from it (with twice a Kinect-class sensor's error, 3 cells made a box on the floor seem to
+leave 13 cm under it)."""
+PROOF = 3
+"""Floor pixels seen under an object that prove room under it; the clearance is the entry height of
+the PROOF-th highest (one or two stray pixels do not lift it)."""
+NOISE_SIGMAS = 3
+"""The sensor's depth error scatters an object's side-face points out from it, up to about three
+standard deviations: the footprint the rays are walked back through reaches that much too far
+towards the camera, and their entry heights are too high by as much as the same error of the
+floor's heights (the ray's height over the floor, eye height times distance walked over distance
+to the camera, grows as the side face's points scatter out). That much comes off the clearance."""
+LEAST_CLEARANCE = 2
+"""Times MIN_HEIGHT: a lower clearance is reported as 0. The noisy top of a pallet lower than that
+shows pixels lower than MIN_HEIGHT (floor) that seem to prove room under it; a robot needs more."""
+UNDERSIDE_PERCENTILE = 1
+"""The lowest side-face point of an object: this percentile of its raised points' measured heights
+(a table's legs or a box standing beside a shelf bring it down to the floor)."""
 
 
 class DepthProblem(FrameProblem):
@@ -130,8 +151,8 @@ class Elevation(Algorithm):
     def __init__(self, min_area: float = 20.0, epsilon: float = 1.0):
         self.min_area = min_area
         self.epsilon = epsilon
-        self._rays: dict[tuple, np.ndarray] = {}  # per optics and pose
-        self._grids: dict[tuple, np.ndarray] = {}  # per optics: see _rays_of
+        self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # per optics and pose: see _posed
+        self._grids: dict[tuple, np.ndarray] = {}  # per optics: see _posed
         self._lock = threading.Lock()  # guards _rays and _grids
 
     def parse(self, params: str) -> ElevationParams:
@@ -164,7 +185,10 @@ class Elevation(Algorithm):
         y = eye[1] + ray[:, 1] * distance
         z = heights[rows, cols]
         cell = max(MIN_CELL, CELL_FACTOR * float(np.percentile(distance, 95)) * _pixel_angle(rays))
-        return self._regions(frame, params, x, y, z, cell)
+        # The pixels that see the floor (measured lower than MIN), at their rays' point on the floor:
+        # the sensor's depth error moves a point along its ray, off the floor.
+        floor = (self._posed(frame)[1], (depth > 0) & (raw < params.min_height), raw)
+        return self._regions(frame, params, (x, y, z, raw[rows, cols]), cell, floor)
 
     # -- the heights -------------------------------------------------------------------------------
     def heights(self, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -195,7 +219,12 @@ class Elevation(Algorithm):
         return cv2.medianBlur(lent, MEDIAN), raw, depth, rays
 
     def _rays_of(self, frame: Frame) -> np.ndarray:
-        """(H, W, 3) float32 rays of the frame's pixel centres.
+        """(H, W, 3) float32 rays of the frame's pixel centres (:meth:`_posed`)."""
+        return self._posed(frame)[0]
+
+    def _posed(self, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) float32 rays of the frame's pixel centres, and where each meets the floor:
+        (H, W, 3) float32 x, y and horizontal distance from the camera (NaN: it never does).
 
         A ray is ``e3 + p * e1 + q * e2``: (p, q) per pixel depend on the optics alone (for a lens,
         undistorting every pixel: long), kept per camera; the basis (e1, e2, e3) on its pose.
@@ -205,12 +234,12 @@ class Elevation(Algorithm):
         height, width = frame.depth.shape if frame.depth is not None else frame.rgb.shape[:2]
         optics, basis = _optics_and_basis(camera)
         key = (optics, frame.sample_offset, height, width)
-        posed = (key, np.asarray(basis).tobytes())
+        posed = (key, np.asarray(basis).tobytes(), tuple(camera.eye))
         with self._lock:
-            rays = self._rays.get(posed)
+            kept = self._rays.get(posed)
             grid = self._grids.get(key)
-        if rays is not None:
-            return rays
+        if kept is not None:
+            return kept
         if grid is None:
             rows, cols = np.mgrid[0:height, 0:width]
             pixels = frame.to_camera(np.c_[cols.ravel() + 0.5, rows.ravel() + 0.5])
@@ -218,28 +247,32 @@ class Elevation(Algorithm):
         e1, e2, e3 = (np.asarray(axis, np.float32) for axis in basis)
         rays = e3 + grid[..., :1] * e1 + grid[..., 1:] * e2
         rays.setflags(write=False)
+        floor = _floor_of(np.asarray(camera.eye, float), rays)
         with self._lock:
-            for cache in (self._rays, self._grids):
-                if len(cache) >= MAX_CACHED_RAYS:
-                    cache.pop(next(iter(cache)))
-            self._rays[posed] = rays
+            if len(self._rays) >= MAX_CACHED_RAYS:
+                self._rays.pop(next(iter(self._rays)))
+            if len(self._grids) >= MAX_CACHED_RAYS:
+                self._grids.pop(next(iter(self._grids)))
+            self._rays[posed] = (rays, floor)
             self._grids[key] = grid
-        return rays
+        return rays, floor
 
     # -- the regions -------------------------------------------------------------------------------
     def _regions(
         self,
         frame: Frame,
         params: ElevationParams,
-        x: np.ndarray,
-        y: np.ndarray,
-        z: np.ndarray,
+        points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
         cell: float,
+        floor: tuple[np.ndarray, np.ndarray, np.ndarray],
     ) -> list[PixelObject]:
-        """The raised points (x, y, height) gathered on a floor grid of ``cell`` metres, one object
-        per connected region of the grid."""
+        """The raised ``points`` (x, y, filtered height, measured height) gathered on a floor grid of
+        ``cell`` metres, one object per connected region of the grid; ``floor``: where every
+        pixel's ray meets the floor, which pixels see the floor and every pixel's measured height
+        (:func:`_under`): they prove room under an object."""
         import cv2
 
+        x, y, z, measured = points
         x0, y0 = float(x.min()) - 2 * cell, float(y.min()) - 2 * cell
         columns = ((x - x0) / cell).astype(np.int64)
         rows = ((y - y0) / cell).astype(np.int64)
@@ -250,14 +283,28 @@ class Elevation(Algorithm):
         closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((CLOSING, CLOSING), np.uint8))
         count, labels = cv2.connectedComponents(closed, connectivity=8)
         point_labels = labels.ravel()[flat]
-        found = []
+        tops = np.zeros(count)
+        kept = []
         for label in range(1, count):
             mine = point_labels == label
             if np.count_nonzero(mine) < max(self.min_area, 1):
                 continue
-            top = float(np.percentile(z[mine], TOP_PERCENTILE))
-            if params.max_height is not None and top > params.max_height:
-                continue
+            tops[label] = float(np.percentile(z[mine], TOP_PERCENTILE))
+            if params.max_height is None or tops[label] <= params.max_height:
+                kept.append((label, mine))
+        # Each cell's height, the mean of its points' (the closing's gaps: their neighbours' highest):
+        # a ray lower than that is under it.
+        sums = np.bincount(flat, weights=z, minlength=shape[0] * shape[1]).reshape(shape)
+        highest = (sums / np.maximum(counts, 1)).astype(np.float32)
+        gaps = cv2.dilate(highest, np.ones((CLOSING, CLOSING), np.uint8))
+        highest = np.where(counts > 0, highest, gaps)
+        grid = _Grid(labels, highest, x0, y0, cell)
+        under = _under(grid, floor, np.asarray(frame.camera.eye, float), tops)
+        found = []
+        for label, mine in kept:
+            top = float(tops[label])
+            underside = float(np.percentile(measured[mine], UNDERSIDE_PERCENTILE))
+            clearance = _clearance(under.get(label), top, underside, params.min_height)
             region = np.where(labels == label, 255, 0).astype(np.uint8)
             # A part smaller than the closing, joined to the rest at a corner, is a spur of its edge.
             for part in outlines_of_mask(region, CLOSING * CLOSING, self.epsilon, evidence=occupied & region):
@@ -273,9 +320,133 @@ class Elevation(Algorithm):
                         confidence=part.confidence,
                         footprint=footprint,
                         top_height=top,
+                        clearance=clearance,
                     )
                 )
         return found
+
+
+# -- the room under an object ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Grid:
+    """The floor grid's labelled regions: ``labels[row, col]`` (0: no object) and the height
+    ``highest[row, col]`` of the cell whose lower corner is ``(x0 + col * cell, y0 + row * cell)``."""
+
+    labels: np.ndarray
+    highest: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+
+    def label_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The label of the cell under each point (x, y); 0 off the grid."""
+        return self.at(x, y)[0]
+
+    def at(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The label and the height of the cell under each point (x, y); 0 off the grid."""
+        cols = np.floor((x - self.x0) / self.cell).astype(np.int64)
+        rows = np.floor((y - self.y0) / self.cell).astype(np.int64)
+        rows_n, cols_n = self.labels.shape
+        on = (rows >= 0) & (rows < rows_n) & (cols >= 0) & (cols < cols_n)
+        labels = np.zeros(len(x), self.labels.dtype)
+        labels[on] = self.labels[rows[on], cols[on]]
+        highest = np.zeros(len(x), self.highest.dtype)
+        highest[on] = self.highest[rows[on], cols[on]]
+        return labels, highest
+
+
+NOWHERE = -1e9
+"""Where :func:`_floor_of` puts a ray that never meets the floor: far off any grid."""
+
+
+def _floor_of(eye: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Where each ray meets the floor, (H, W, 3) float32: x, y and the horizontal distance from the
+    camera; :data:`NOWHERE` (and 0) for a ray that never does."""
+    down = np.isfinite(rays[..., 2]) & (rays[..., 2] < 0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        reach = np.where(down, np.float32(eye[2]) / -rays[..., 2], 0.0)
+    dx, dy = rays[..., 0] * reach, rays[..., 1] * reach
+    floor = np.stack(
+        [np.where(down, eye[0] + dx, NOWHERE), np.where(down, eye[1] + dy, NOWHERE), np.hypot(dx, dy)],
+        axis=-1,
+    ).astype(np.float32)
+    floor.setflags(write=False)
+    return floor
+
+
+def _under(
+    grid: _Grid, floor: tuple[np.ndarray, np.ndarray, np.ndarray], eye: np.ndarray, tops: np.ndarray
+) -> dict[int, tuple[np.ndarray, float]]:
+    """Region label -> the heights at which the rays of the floor pixels seen inside its footprint
+    entered it, lower than its top (``tops[label]``; 0: not an object), only those that ran
+    :data:`UNDER_CELLS` under it; and the standard deviation of those floor pixels' measured
+    heights (the sensor's noise there). ``floor``: where every pixel's ray meets the floor
+    (:func:`_floor_of`), which pixels see the floor and every pixel's measured height.
+
+    A ray descends from the camera to the floor: its highest point under the object is where it
+    went under it, and the object's underside there is higher still. Walked back from the floor
+    point towards the camera a cell at a time while it stays in the region and lower than the height
+    of the cell it is over (where it is higher, it passed over that part: a lower box merged with a
+    shelf, or the footprint off); the region's edge cell is half covered on average, so half a cell
+    comes off the distance under it.
+    """
+    import cv2
+
+    points, seen, raw = floor
+    # Every pixel's cell's label at once (nearest: rounding v - 0.5 is flooring v; off the grid 0),
+    # then only the floor pixels in a region, exactly.
+    scale = np.float32(1.0 / grid.cell)
+    cols = (points[..., 0] - np.float32(grid.x0 + grid.cell / 2)) * scale
+    rows = (points[..., 1] - np.float32(grid.y0 + grid.cell / 2)) * scale
+    under = cv2.remap(
+        grid.labels.astype(np.float32), cols, rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT
+    )
+    chosen = np.flatnonzero(seen & (under > 0))
+    x, y, reach = (points.reshape(-1, 3)[chosen, i].astype(np.float64) for i in range(3))
+    measured = raw.ravel()[chosen]
+    labels = grid.label_at(x, y)
+    inside = np.nonzero(labels)[0]
+    if len(inside) == 0:
+        return {}
+    x, y, reach, labels, measured = x[inside], y[inside], reach[inside], labels[inside], measured[inside]
+    ux, uy = (eye[0] - x) / np.maximum(reach, 1e-9), (eye[1] - y) / np.maximum(reach, 1e-9)
+    # Not past the point below the camera, nor above the top.
+    furthest = np.minimum(reach, tops[labels] * reach / eye[2] + grid.cell / 2)
+    step = grid.cell
+    run = np.zeros(len(x))  # metres walked back still inside the region
+    walking = np.arange(len(x))
+    distance = step
+    while len(walking):
+        walking = walking[furthest[walking] > distance]
+        back, highest = grid.at(x[walking] + ux[walking] * distance, y[walking] + uy[walking] * distance)
+        walking = walking[(back == labels[walking]) & (highest > eye[2] * distance / reach[walking])]
+        run[walking] = distance
+        distance += step
+    run -= grid.cell / 2
+    deep = run >= UNDER_CELLS * grid.cell
+    entered = eye[2] * run[deep] / reach[deep]
+    deep[deep] = entered < tops[labels[deep]]
+    entered = eye[2] * run[deep] / reach[deep]
+    found = {}
+    for label in np.unique(labels[deep]).tolist():
+        # The sensor's noise: the floor's heights below its median (those above MIN are not floor).
+        noise = max(0.0, -float(np.percentile(measured[labels == label], 16)))
+        found[label] = (entered[labels[deep] == label], noise)
+    return found
+
+
+def _clearance(
+    under: tuple[np.ndarray, float] | None, top: float, underside: float, min_height: float
+) -> float:
+    """An object's clearance: the entry height of the :data:`PROOF`-th highest ray seen under it
+    less :data:`NOISE_SIGMAS` times the sensor's noise there (:func:`_under`), no higher than its
+    lowest side-face point (``underside``); 0 without proof (unknown: on the floor) or when lower
+    than :data:`LEAST_CLEARANCE` times ``min_height``."""
+    if under is None or len(under[0]) < PROOF:
+        return 0.0
+    entered, noise = under
+    clearance = float(min(np.partition(entered, -PROOF)[-PROOF] - NOISE_SIGMAS * noise, underside))
+    return clearance if clearance >= LEAST_CLEARANCE * min_height else 0.0
 
 
 def _inset(footprint: np.ndarray, cell: float) -> np.ndarray | None:

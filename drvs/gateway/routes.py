@@ -237,6 +237,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             'bounding_box': {'$ref': '#/components/schemas/Region'},
             'label': {'type': 'string'},
             'height': {**_NUMBER, 'description': "metres above the floor of the object's top; 0: unknown"},
+            'clearance': {
+                **_NUMBER,
+                'description': "metres above the floor of the object's underside; 0: on the floor or unknown",
+            },
             'track_id': {'type': 'integer', 'description': '0: not tracked'},
             'confidence': _NUMBER,
             'velocity': {'type': 'array', 'items': _NUMBER, 'description': '[x, y, z] m/s in `map`'},

@@ -76,6 +76,7 @@ def assemble(params: RobotParams, world: World, me: FleetRobot, name: str) -> Ro
             fused=fused,
             caution=params.obstacle_clearance,
             cut_roles=perception.cut_roles,
+            robot_height=params.robot_height if params.robot_height is not None else size[2],
         ),
         yielding=Yielding(
             params.traffic_horizon,

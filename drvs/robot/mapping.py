@@ -1,8 +1,10 @@
 """The blind robot's map building: the vision systems' obstacle outlines -> its cost grid.
 
 Each control tick :meth:`MapBuilder.update` takes the outlines every source (one obstacle role
-seen by one vision system) last reported, merges them per role, cuts the robot's own body, its
-recent trail and its station out of them, and rasterises them into the
+seen by one vision system) last reported, leaves out what the robot can drive under
+(:func:`headroom`), merges them per role, cuts the robot's own body, its recent trail and its
+station (and, from what ``elevation`` and ``foreground`` report, the other robots) out of them,
+and rasterises them into the
 :class:`~drvs.robot.occupancy.CostGrid` the planner reads; it says which cells changed and
 whether ``~map`` is due. No ROS here; the threads that call it are in docs/architecture.md.
 """
@@ -24,6 +26,7 @@ from drvs.robot.perception import (
     STATIC_ROLES,
     Box,
     Fix,
+    Level,
     cut_bodies,
     exclude_bodies,
     merge_outlines,
@@ -33,6 +36,9 @@ from drvs.sim.world import box_footprint
 
 __all__ = [
     'BODY_MARGIN',
+    'HEADROOM',
+    'SAME_TOP',
+    'headroom',
     'MAX_CELLS',
     'OWN_TRAIL',
     'MapBuilder',
@@ -56,7 +62,56 @@ OWN_SHARE = 0.1
 MAX_AGE = 1.0
 """Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
-"""Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles."""
+"""Seconds of the robot's own past positions whose moving regions are ghosts of itself, not obstacles;
+and of the other robots' outlines (the fleet's ``robot`` role) cut out of ``elevation``'s and
+``foreground``'s static regions (a region of a robot that drove on stands until its camera reports
+again)."""
+HEADROOM = 0.05
+"""Metres: an obstacle counts unless the room under it (its clearance) is at least the robot's
+height plus this (the clearance is measured from below, at most 1 cm too high in the unit tests
+of ``elevation``; the rest is for a robot that rocks)."""
+SAME_TOP = 0.05
+"""Metres: two cameras' outlines of one object have tops this close (an outline that is higher is
+of something else as well, merged with it)."""
+UNDER_MARGIN = 0.05
+"""Metres around an outline the robot can drive under that are cut from the other cameras' outlines
+of it: theirs are a few centimetres off, and a rim left along its edge would bar the way under it."""
+PROOF_KEEP = 30.0
+"""Seconds an outline the robot can drive under still cuts, from the outlines of it that hold the
+robot: a camera that saw floor under a shelf sees the robot under it (or in front of it) as part of
+it, standing on the floor, for as long as it is there."""
+
+
+def headroom(
+    found: Sequence[tuple[Polygon, XY | None, Level]],
+    head: float,
+    proofs: Sequence[tuple[Polygon, float]] = (),
+    own: Polygon | None = None,
+) -> tuple[list[tuple[Polygon, XY | None]], list[tuple[Polygon, float]]]:
+    """Of one role's outlines (each with its velocity and its (top, clearance)), those that count for
+    a robot that needs ``head`` metres of room, and those it can drive under (with their tops).
+
+    An outline with at least ``head`` of clearance is left out, and cut (grown by
+    :data:`UNDER_MARGIN`) from the outlines of the same object that other cameras, which saw only its
+    top (clearance 0: unknown), report: those it intersects whose top is within :data:`SAME_TOP` of
+    its own. ``proofs``: outlines found passable before (:data:`PROOF_KEEP`), with their tops, which
+    cut only the outlines that overlap the robot itself (``own``): the camera sees it under them.
+    """
+    passable = [(o, top) for o, _, (top, clearance) in found if clearance >= head]
+    counted: list[tuple[Polygon, XY | None]] = []
+    for outline, velocity, (top, clearance) in found:
+        if clearance >= head:
+            continue
+        over = [p for p, p_top in passable if abs(p_top - top) <= SAME_TOP and p.intersects(outline)]
+        if own is not None and proofs and outline.intersects(own):
+            over += [p for p, p_top in proofs if abs(p_top - top) <= SAME_TOP and p.intersects(outline)]
+        if not over:
+            counted.append((outline, velocity))
+            continue
+        counted.extend(
+            (piece, velocity) for piece in cut_bodies([outline], [p.buffer(UNDER_MARGIN) for p in over])
+        )
+    return counted, passable
 
 
 def grid_resolution(floor_size: Sequence[float]) -> float:
@@ -136,7 +191,10 @@ class MapBuilder:
     :param cut_roles: the obstacle roles whose outlines have the robot's body and station cut out,
         not dropped when they overlap them: the fleet's ``robot`` and the class-agnostic
         algorithms' (:data:`~drvs.robot.perception.CLASS_AGNOSTIC`), whose region around the robot
-        may be a real obstacle merged with it.
+        may be a real obstacle merged with it; the class-agnostic ones lose the other robots (the
+        fleet's outlines) too.
+    :param robot_height: metres; an outline with at least this plus :data:`HEADROOM` of clearance
+        is not an obstacle (:func:`headroom`). Default: infinite, everything counts.
     """
 
     def __init__(
@@ -154,6 +212,7 @@ class MapBuilder:
         fused: Collection[str] = (),
         caution: float = 0.0,
         cut_roles: Collection[str] = (FLEET_ROLE,),
+        robot_height: float = math.inf,
     ):
         self.robot_size = robot_size
         self.obstacle_roles = tuple(obstacle_roles)
@@ -170,6 +229,10 @@ class MapBuilder:
         self.people: list[Mover] = []  # whatever else moves (people), likewise
         self.min_mover = MOVER_AREA * robot_size[0] * robot_size[1]
         self.fused = frozenset(fused)
+        self.head = robot_height + HEADROOM
+        self.passable = 0  # outlines left out at the last update: the robot can drive under them
+        self._proofs: dict[str, list[tuple[float, Polygon, float]]] = {}  # role -> (when, outline, top)
+        self._others: collections.deque = collections.deque()  # (when, the other robots' outlines)
         self._memory_lock = (
             threading.Lock()
         )  # guards the fields below: callbacks observe, the control loop reads
@@ -195,11 +258,13 @@ class MapBuilder:
         region: Box | None = None,
         velocities: Sequence[XY | None] | None = None,
         seen: float | None = None,
+        levels: Sequence[Level] | None = None,
     ) -> None:
         """What ``vision_system`` sees of ``role`` now (nothing: the outlines linger a while) in
         ``region``, the region the robot asked it about: a static role's outlines it reported
         before outside that region stay. ``velocities``: each outline's, when DRVS tracked them;
-        ``seen``: when the frames were taken (default ``now``)."""
+        ``seen``: when the frames were taken (default ``now``); ``levels``: each outline's top and
+        clearance (default unknown, (0, 0))."""
         region = region if role in STATIC_ROLES else None
         source = (role, vision_system)
         with self._memory_lock:
@@ -207,7 +272,7 @@ class MapBuilder:
             if outlines or not self.linger:  # (a report of nothing keeps the outlines that linger)
                 given = zip(outlines, velocities or (), strict=False)
                 self._velocities[source] = {id(o): v for o, v in given if v is not None}
-            self._memory.observe(source, outlines, now, linger=self.linger, region=region)
+            self._memory.observe(source, outlines, now, linger=self.linger, region=region, facts=levels)
 
     def update(
         self, now: float, fix: Fix | None, station: Fix | None, position: XY | None = None
@@ -216,7 +281,7 @@ class MapBuilder:
         trail, its body, and where it believes it is, ``position``: a fix may be late) and its
         ``station``."""
         with self._memory_lock:
-            sources = self._memory.current(now)
+            sources = self._memory.entries(now)
             velocities = {source: dict(self._velocities.get(source, {})) for source in sources}
             heard = dict(self._heard)
         bodies = [f.outline for f in (fix, station) if f is not None]
@@ -230,21 +295,23 @@ class MapBuilder:
         # elevation's and foreground's regions lose the robot and station grown by the margin: their
         # outline of them, a frame older or inset by half a cell, would leave a rim.
         grown = [*bodies, *(f.outline.buffer(BODY_MARGIN) for f in (fix, station) if f is not None)]
+        self.passable = 0
+        found_by_role = {
+            role: self._counted(role, sources, velocities, now, own) for role in self.obstacle_roles
+        }
+        # elevation and foreground find the other robots too, and keep where a robot stood until
+        # their camera reports again: the fleet's outlines of them (and where they were) are cut out.
+        others = self._other_robots(now, found_by_role.get(FLEET_ROLE), bodies)
         objects: list[Polygon] = []
         moving_people: dict[str, list[Mover]] = {}
         for role in self.obstacle_roles:
-            found = [
-                (o, velocities[source].get(id(o)))
-                for source, outlines in sources.items()
-                if source[0] == role
-                for o in outlines
-            ]
+            found = found_by_role[role]
             if role not in self.fused:  # one vision system's outlines each: one polygon per object
                 found = [(o, None) for o in merge_outlines(o for o, _ in found)]
             if role in self.cut_roles:
                 # The fleet's model (and elevation, foreground) finds this robot too, as one blob with
                 # another robot or an obstacle it touches: its own body is cut out, not the blob dropped.
-                cut = bodies if role == FLEET_ROLE else grown
+                cut = bodies if role == FLEET_ROLE else [*grown, *others]
                 pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], cut)]
             else:
                 pieces = [(o, v) for o, v in found if exclude_bodies([o], bodies)]
@@ -272,3 +339,50 @@ class MapBuilder:
         self.obstacles = len(objects)
         changes = self.grid.apply(objects)
         return MapUpdate(changes, self.publishing.due(now, bool(changes)))
+
+    def _counted(
+        self,
+        role: str,
+        sources: dict[Source, list[tuple[Polygon, Level | None]]],
+        velocities: dict[Source, dict[int, XY]],
+        now: float,
+        own: Polygon,
+    ) -> list[tuple[Polygon, XY | None]]:
+        """``role``'s outlines from every source, each with its velocity, without what the robot can
+        drive under (:func:`headroom`); those are kept :data:`PROOF_KEEP` seconds as proofs."""
+        found = [
+            (o, velocities[source].get(id(o)), level or (0.0, 0.0))
+            for source, outlines in sources.items()
+            if source[0] == role
+            for o, level in outlines
+        ]
+        proofs = [(when, o, top) for when, o, top in self._proofs.get(role, ()) if now - when <= PROOF_KEEP]
+        counted, passable = headroom(found, self.head, [(o, top) for _, o, top in proofs], own)
+        self.passable += len(passable)
+        if passable or proofs:
+            self._proofs[role] = [(when, o, top) for when, o, top in proofs if not _renewed(o, passable)] + [
+                (now, o, top) for o, top in passable
+            ]
+        return counted
+
+    def _other_robots(
+        self, now: float, found: list[tuple[Polygon, XY | None]] | None, bodies: list[Polygon]
+    ) -> list[Polygon]:
+        """The other robots as the fleet's role finds them now and found them in the last
+        :data:`OWN_TRAIL` seconds (pieces a robot's size at least, without this robot), the current
+        ones grown by :data:`BODY_MARGIN`."""
+        if found is None:
+            return []
+        pieces = cut_bodies(merge_outlines(o for o, _ in found), bodies)
+        robots = [piece for piece in pieces if piece.area >= self.min_mover]
+        trail = self._others
+        if robots:
+            trail.append((now, robots))
+        while trail and now - trail[0][0] > OWN_TRAIL:
+            trail.popleft()
+        return [*(robot.buffer(BODY_MARGIN) for robot in robots), *(o for _, seen in trail for o in seen)]
+
+
+def _renewed(outline: Polygon, passable: Sequence[tuple[Polygon, float]]) -> bool:
+    """Whether a proof ``outline`` is replaced by one of the ``passable`` outlines found now."""
+    return any(outline.intersects(p) for p, _ in passable)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from shapely.geometry import Polygon, box
@@ -156,13 +157,14 @@ Source = tuple[str, str]
 
 
 class ObstacleMemory:
-    """The latest outlines per source, each forgotten ``ttl`` seconds after it was last heard."""
+    """The latest outlines per source, each forgotten ``ttl`` seconds after it was last heard; each
+    outline may carry facts of its own (its top and clearance), which a piece of it keeps."""
 
     def __init__(self, ttl: float):
         if not ttl > 0:
             raise OccupancyError(f'obstacle_ttl: expected a positive number of seconds, got {ttl}')
         self.ttl = ttl
-        self._sources: dict[Source, tuple[float, list[Polygon]]] = {}  # source -> (until, outlines)
+        self._sources: dict[Source, tuple[float, list[tuple[Polygon, Any]]]] = {}  # -> (until, outlines)
 
     def observe(
         self,
@@ -171,6 +173,7 @@ class ObstacleMemory:
         now: float,
         linger: float = 0.0,
         region: tuple[float, float, float, float] | None = None,
+        facts: Sequence[Any] | None = None,
     ) -> None:
         """``source`` reports everything it now sees (in ``region``): its earlier outlines are
         replaced (there).
@@ -181,27 +184,33 @@ class ObstacleMemory:
         :param region: the region the report is about, for obstacles that stand still: what
             the source reported before outside it stays (the robot asked elsewhere, the
             obstacle is still there). None: the report is about everything.
+        :param facts: one per outline (default None each), given back by :meth:`entries`.
         """
+        given = list(zip(outlines, facts if facts is not None else [None] * len(outlines), strict=True))
         if region is not None and source in self._sources:
             outside = box(*region)
             kept = [
-                piece
-                for before in self._sources[source][1]
+                (piece, fact)
+                for before, fact in self._sources[source][1]
                 for piece in _polygons(before.difference(outside))
                 if piece.area >= MIN_KEPT
             ]
-            outlines = [*outlines, *kept]
-        if not outlines and linger > 0 and source in self._sources:
+            given = [*given, *kept]
+        if not given and linger > 0 and source in self._sources:
             until, before = self._sources[source]
             self._sources[source] = (min(until, now + linger), before)
             return
-        self._sources[source] = (now + self.ttl, list(outlines))
+        self._sources[source] = (now + self.ttl, given)
+
+    def entries(self, now: float) -> dict[Source, list[tuple[Polygon, Any]]]:
+        """(outline, its facts) of every source heard within ``ttl``; older sources are forgotten."""
+        for source in [s for s, (until, _) in self._sources.items() if now > until]:
+            del self._sources[source]
+        return {source: list(outlines) for source, (_, outlines) in self._sources.items()}
 
     def current(self, now: float) -> dict[Source, list[Polygon]]:
         """Outlines of every source heard within ``ttl``; older sources are forgotten."""
-        for source in [s for s, (until, _) in self._sources.items() if now > until]:
-            del self._sources[source]
-        return {source: outlines for source, (_, outlines) in self._sources.items()}
+        return {source: [o for o, _ in found] for source, found in self.entries(now).items()}
 
 
 class MapPublishing:

@@ -66,6 +66,14 @@ class RobotParams(Settings):
         check=NON_NEGATIVE,
         default_text="half the diagonal of the robot's footprint",
     )
+    robot_height: float | None = param(
+        None,
+        'an obstacle counts unless the room under it (`DetectedObject.clearance`, measured by '
+        '`elevation`) is at least this plus 5 cm: the robot drives under a shelf that high',
+        unit='m',
+        check=POSITIVE,
+        default_text="the robot's height in the world file",
+    )
     obstacle_clearance: float = param(
         0.1,
         'cells this much beyond `~robot_radius` from an obstacle cost a quarter more: a plan '

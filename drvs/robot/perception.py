@@ -39,6 +39,8 @@ HIDDEN = 0.8
 """A station outline smaller than this fraction of its fix's, where the fix is, is the station
 partly hidden (the robot drives onto it): it keeps the fix."""
 Box = tuple[float, float, float, float]
+Level = tuple[float, float]
+"""An outline's top and the room under it (DetectedObject's height and clearance), metres; 0: unknown."""
 
 
 class PerceptionError(ValueError):
@@ -202,6 +204,14 @@ def cut_bodies(outlines: Iterable[Polygon], bodies: Iterable[Polygon], min_area:
     return pieces
 
 
+def _level(level: Sequence[float]) -> Level:
+    """(top, clearance) as reported; a value that is not a number of metres >= 0 is unknown (0)."""
+    top, clearance = (
+        float(v) if isinstance(v, int | float) and math.isfinite(v) and v >= 0 else 0.0 for v in level
+    )
+    return (top, clearance)
+
+
 class RequestBook:
     """Issues request ids (``<role>-<seq>``, and ``<prefix>/<role>`` for watches) and parses the
     ids that callbacks echo."""
@@ -273,6 +283,7 @@ class Answer:
     outlines: tuple[Polygon, ...]
     poses: tuple[tuple[float, float, float], ...] = ()  # (x, y, yaw) of each tag, for apriltag
     velocities: tuple[Point | None, ...] = ()  # each outline's, when the callback gives them (fused)
+    levels: tuple[Level, ...] = ()  # each outline's (top, clearance), metres; (0, 0): unknown
 
 
 Held = tuple[float, list[Polygon], tuple]
@@ -341,10 +352,12 @@ class Perception:
         stamp: float,
         outlines: Iterable[Sequence[Sequence[float]]],
         velocities: Iterable[Point | None] | None = None,
+        levels: Iterable[Level] | None = None,
     ) -> Answer | None:
         """Take one callback; return the accepted answer, or None when it was superseded.
 
-        ``velocities``: each outline's (a fused callback's tracks'), in the answer beside its polygon.
+        ``velocities``: each outline's (a fused callback's tracks'), in the answer beside its polygon;
+        ``levels``: each outline's top and clearance (metres; default (0, 0), unknown), likewise.
 
         :raises PerceptionError: for an id this robot never issued, or an
             algorithm that is not the one the id's role asks with.
@@ -359,14 +372,30 @@ class Perception:
         given = list(velocities) if velocities is not None else [None] * len(outlines)
         if len(given) != len(outlines):
             raise PerceptionError(f'velocities: expected {len(outlines)}, one per outline, got {len(given)}')
-        kept = [(p, v) for p, v in zip(map(to_polygon, outlines), given, strict=True) if p is not None]
-        polygons = tuple(p for p, _ in kept)
+        heights = [_level(level) for level in levels] if levels is not None else [(0.0, 0.0)] * len(outlines)
+        if len(heights) != len(outlines):
+            raise PerceptionError(f'levels: expected {len(outlines)}, one per outline, got {len(heights)}')
+        kept = [
+            (p, v, h)
+            for p, v, h in zip(map(to_polygon, outlines), given, heights, strict=True)
+            if p is not None
+        ]
+        polygons = tuple(p for p, _, _ in kept)
         poses: tuple[tuple[float, float, float], ...] = ()
         if algorithm.split(':', 1)[0] == 'apriltag':
             from drvs.algorithms.apriltag import tag_pose
 
             poses = tuple(tag_pose(points) for points in outlines if len(points) == 4)
-        answer = Answer(role, seq, vision_system, stamp, polygons, poses, tuple(v for _, v in kept))
+        answer = Answer(
+            role,
+            seq,
+            vision_system,
+            stamp,
+            polygons,
+            poses,
+            tuple(v for _, v, _ in kept),
+            tuple(h for *_, h in kept),
+        )
         if seq == WATCH:
             return answer if self._watched(answer) else None
         if role in LOCALISATION_ROLES:

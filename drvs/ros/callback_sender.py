@@ -49,10 +49,10 @@ class CallbackSender:
         self.markers_pub = rospy.Publisher(markers_topic, MarkerArray, queue_size=10)
 
     def send(self, asked, vision_system: str, stamp: float, found) -> bool:
-        """Send ``found`` (:class:`drvs.vision.pipeline.Located`: outline, label, confidence, height; [] for a
-        watch's "all gone") seen in a frame of ``stamp`` to the caller of ``asked`` (a
-        :class:`drvs.vision.detections.Job` or a watch's :class:`drvs.vision.watch_runner.Terms`);
-        whether the call arrived."""
+        """Send ``found`` (:class:`drvs.vision.pipeline.Located`: outline, label, confidence,
+        height, clearance; [] for a watch's "all gone") seen in a frame of ``stamp`` to the caller
+        of ``asked`` (a :class:`drvs.vision.detections.Job` or a watch's
+        :class:`drvs.vision.watch_runner.Terms`); whether the call arrived."""
         request = CallbackCoordinatesRequest(
             algorithm=asked.algorithm.text,
             request_id=asked.request_id,

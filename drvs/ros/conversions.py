@@ -38,16 +38,21 @@ def bounds_of(points: Iterable[Sequence[float]]) -> Box:
 
 
 def points_to_detected_object(
-    points: Sequence[Sequence[float]], label: str = '', confidence: float = 0.0, height: float = 0.0
+    points: Sequence[Sequence[float]],
+    label: str = '',
+    confidence: float = 0.0,
+    height: float = 0.0,
+    clearance: float = 0.0,
 ) -> DetectedObject:
     """An outline (counter-clockwise on the floor), its label, the algorithm's confidence (0-1;
-    0: unknown) and the height of its top (metres; 0: unknown) -> drvs/DetectedObject with its
-    bounding box (the fusion stage's fields at their defaults)."""
+    0: unknown), the height of its top and of its underside (metres; 0: unknown) ->
+    drvs/DetectedObject with its bounding box (the fusion stage's fields at their defaults)."""
     return DetectedObject(
         boundary=points_to_polygon(points),
         bounding_box=box_to_msg(bounds_of(points)),
         label=label,
         height=height,
+        clearance=clearance,
         confidence=confidence,
     )
 

@@ -83,6 +83,7 @@ def object_to_dict(detected) -> dict[str, Any]:
         },
         'label': detected.label,
         'height': _number(detected.height),
+        'clearance': _number(detected.clearance),
         'track_id': detected.track_id,
         'confidence': _number(detected.confidence),
         'velocity': [_number(velocity.x), _number(velocity.y), _number(velocity.z)],

@@ -161,6 +161,7 @@ class BlindRobot:
         stamp = callback_stamp(req.stamp.to_sec(), received)
         outlines = [polygon_to_points(obj.boundary) for obj in req.objects]
         velocities = [(obj.velocity.x, obj.velocity.y) if obj.track_id else None for obj in req.objects]
+        levels = [(obj.height, obj.clearance) for obj in req.objects]
         serialized = io.BytesIO()
         req.serialize(serialized)
         self.node.counters.add(callbacks=1, callback_bytes=serialized.tell())
@@ -174,7 +175,7 @@ class BlindRobot:
                     answer = None
                 else:
                     answer = self.perception.accept(
-                        req.algorithm, req.request_id, req.vision_system, stamp, outlines, velocities
+                        req.algorithm, req.request_id, req.vision_system, stamp, outlines, velocities, levels
                     )
             except PerceptionError as error:
                 refused = error  # logged once the lock is released
@@ -190,6 +191,7 @@ class BlindRobot:
                         region,
                         answer.velocities,
                         stamp,
+                        answer.levels,
                     )
                     self.asked.heard(answer.role, answer.vision_system, stamp)
         if outcome == SKIP:

@@ -52,6 +52,7 @@ def detected_object(track: TrackView) -> DetectedObject:
         stationary=track.stationary,
         seen_by=list(track.seen_by),
         height=track.height,
+        clearance=track.clearance,
     )
 
 
@@ -63,6 +64,7 @@ def observations(objects) -> list[Observation]:
             label=o.label,
             confidence=float(o.confidence),
             height=float(o.height),
+            clearance=float(o.clearance),
         )
         for o in objects
     ]

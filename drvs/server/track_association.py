@@ -25,6 +25,9 @@ __all__ = ['Association', 'Candidate', 'Rules', 'Seen', 'Track', 'associate']
 
 Point = tuple[float, float]
 _NO = 1e9  # the cost of a pair outside the gate
+SAME_TOP = 0.05
+"""Metres: two cameras' outlines of a track whose tops differ by no more are views of one object
+(their clearances compare, :meth:`Track.clearance`)."""
 
 
 @dataclass
@@ -34,6 +37,7 @@ class Seen:
     stamp: float
     shape: Shape
     height: float = 0.0  # metres above the floor of the object's top; 0: not measured
+    clearance: float = 0.0  # metres above the floor of its underside; 0: on the floor or not measured
 
 
 @dataclass(eq=False)
@@ -68,6 +72,15 @@ class Track:
         """The highest top its fresh outlines measured (:meth:`fresh`), metres; 0 when none did."""
         return max((seen.height for seen in self.fresh(age)), default=0.0)
 
+    def clearance(self, age: float) -> float:
+        """The room under it, metres: the largest clearance among its fresh outlines whose top is
+        the track's (within :data:`SAME_TOP`: another camera's view of the same object, not of it
+        merged with something higher); 0 when none measured one. A camera that saw only its top
+        reports 0, unknown: one that saw floor under it has the proof."""
+        fresh = self.fresh(age)
+        top = max((seen.height for seen in fresh), default=0.0)
+        return max((seen.clearance for seen in fresh if seen.height >= top - SAME_TOP), default=0.0)
+
     def fresh(self, age: float) -> list[Seen]:
         """The cameras' outlines at most ``age`` seconds older than its newest: its fused outline."""
         return [s for s in self.seen.values() if s.stamp >= self.last_seen - age]
@@ -98,6 +111,7 @@ class Candidate:
     confidence: float
     pieces: list[Shape] = field(default_factory=list)
     height: float = 0.0  # the highest of its pieces' tops, metres; 0: not measured
+    clearance: float = 0.0  # the lowest of its pieces' undersides, metres; 0: on the floor or not measured
 
 
 @dataclass(frozen=True)
@@ -175,6 +189,7 @@ def associate(
         else:
             joined[col].pieces.append(candidate.shape)
             joined[col].height = max(joined[col].height, candidate.height)
+            joined[col].clearance = min(joined[col].clearance, candidate.clearance)
     for col, candidate in joined.items():
         if candidate.pieces:
             candidate.pieces.insert(0, candidate.shape)

@@ -47,6 +47,9 @@ class Observation:
     """The camera's own, 0..1 (0: unknown)."""
     height: float = 0.0
     """Metres above the floor of the object's top, when the algorithm measures it (0: unknown)."""
+    clearance: float = 0.0
+    """Metres above the floor of the object's underside, when the algorithm measured room under it
+    (0: on the floor or unknown)."""
 
 
 @dataclass(frozen=True)
@@ -164,6 +167,9 @@ class TrackView:
     height: float = 0.0
     """Metres: the highest top its cameras' recent outlines measured (as fresh as those :attr:`outline`
     may be made of); 0 when none measured one."""
+    clearance: float = 0.0
+    """Metres: the room under it, the largest clearance among those outlines with its top
+    (:meth:`~drvs.server.track_association.Track.clearance`); 0 when none measured one."""
 
 
 class Tracker:
@@ -263,11 +269,9 @@ class Tracker:
                 confidence = 0.0
             label = getattr(observation, 'label', '')
             label = label if isinstance(label, str) else str(label)
-            height = getattr(observation, 'height', 0.0)
-            if not isinstance(height, int | float) or not math.isfinite(height) or height < 0:
-                height = 0.0
+            height, clearance = (_metres(getattr(observation, name, 0.0)) for name in ('height', 'clearance'))
             confidence = min(1.0, max(0.0, float(confidence)))
-            candidates.append(Candidate(shape, label, confidence, height=float(height)))
+            candidates.append(Candidate(shape, label, confidence, height=height, clearance=clearance))
         return candidates, skipped
 
     def _end_unseen(self, stamp: float) -> None:
@@ -294,7 +298,7 @@ class Tracker:
         track.motion.update(stamp, centroid, self._sigma2(candidate.shape))
         seen = track.seen.get(camera)
         if seen is None or seen.stamp <= stamp:
-            track.seen[camera] = Seen(stamp, candidate.shape, candidate.height)
+            track.seen[camera] = Seen(stamp, candidate.shape, candidate.height, candidate.clearance)
         track.last_seen = max(track.last_seen, stamp)
         track.fused = None
         track.evidence = 1 - (1 - track.evidence) * (1 - self._evidence(candidate.confidence))
@@ -324,7 +328,7 @@ class Tracker:
         shape = candidate.shape
         motion = Motion(self._noise, self._window, stamp, shape.centroid, self._sigma2(shape))
         track = Track(self._next_id, candidate.label, motion, self._evidence(candidate.confidence), stamp)
-        track.seen[camera] = Seen(stamp, shape, candidate.height)
+        track.seen[camera] = Seen(stamp, shape, candidate.height, candidate.clearance)
         self._next_id += 1
         self._tracks[track.track_id] = track
         if track.label:
@@ -404,6 +408,7 @@ class Tracker:
                     track.label,
                     track.last_seen,
                     track.height(outline_age),
+                    track.clearance(outline_age),
                 )
             )
         return views
@@ -421,6 +426,13 @@ class Tracker:
     def forget(self, vision_system: str) -> None:
         """``vision_system`` unregistered or was removed: drop its pose check (its tracks coast)."""
         self._pose.forget(vision_system)
+
+
+def _metres(value: object) -> float:
+    """A height from an observation: a number >= 0, else 0 (not measured)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+        return 0.0
+    return float(value)
 
 
 def _overlaps(outline: Sequence[Point], region: Box) -> bool:

@@ -42,25 +42,36 @@ class FloorObject(NamedTuple):
     outline: Outline  # the whole object as reported: ``ordered``, or ring(shape)
     confidence: float = 0.0  # the algorithm's (PixelObject.confidence); 0: unknown
     height: float = 0.0  # the object's top above the floor (PixelObject.top_height); 0: unknown
+    clearance: float = 0.0  # the room under it (PixelObject.clearance); 0: on the floor or unknown
 
     @classmethod
-    def of(
-        cls, shape: Polygon, ordered: list | None, label: str, confidence: float = 0.0, height: float = 0.0
-    ) -> FloorObject:
+    def of(cls, shape: Polygon, ordered: list | None, label: str, pixel_object: PixelObject) -> FloorObject:
+        """``shape`` (``ordered``: its corners in their order, or None) of ``pixel_object``."""
         outline = ordered if ordered is not None else ring(shape)
-        return cls(shape, ordered, label, shape.bounds, outline, confidence, height)
+        return cls(
+            shape,
+            ordered,
+            label,
+            shape.bounds,
+            outline,
+            pixel_object.confidence,
+            pixel_object.top_height,
+            pixel_object.clearance,
+        )
 
 
 class Located(NamedTuple):
     """An object as a request gets it (:func:`in_region`): its outline on the floor in ``map``
     (clipped to the region, counter-clockwise; a tag's corners whole, in their order), its label,
-    the algorithm's confidence (0-1, 0: unknown; an object clipped keeps its whole one) and the
-    height of its top above the floor (metres; 0: unknown)."""
+    the algorithm's confidence (0-1, 0: unknown; an object clipped keeps its whole one), the
+    height of its top above the floor (metres; 0: unknown) and of its underside where it was
+    seen to leave room under it (metres; 0: on the floor or unknown)."""
 
     outline: Outline
     label: str
     confidence: float = 0.0
     height: float = 0.0
+    clearance: float = 0.0
 
 
 def vertex_depths(frame: Frame, outline: np.ndarray) -> np.ndarray:
@@ -188,30 +199,18 @@ def project_objects(frame: Frame, pixel_objects: list[PixelObject]) -> list[Floo
             points = floor_points(frame, pixel_object)
             if len(points) == len(pixel_object.outline):
                 corners = [(float(x), float(y)) for x, y, _ in points]
-                found.append(
-                    FloorObject.of(
-                        Polygon(corners),
-                        corners,
-                        pixel_object.label,
-                        pixel_object.confidence,
-                        pixel_object.top_height,
-                    )
-                )
+                found.append(FloorObject.of(Polygon(corners), corners, pixel_object.label, pixel_object))
             continue
         for floor_shape in project_outline(frame, pixel_object):
-            found.append(
-                FloorObject.of(
-                    floor_shape, None, pixel_object.label, pixel_object.confidence, pixel_object.top_height
-                )
-            )
+            found.append(FloorObject.of(floor_shape, None, pixel_object.label, pixel_object))
     return found
 
 
 def in_region(
     objects: list[FloorObject], region_of_interest: tuple[float, float, float, float]
 ) -> list[Located]:
-    """(outline, label, confidence, height) of each of :func:`on_floor`'s ``objects`` that intersects
-    ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
+    """(outline, label, confidence, height, clearance) of each of :func:`on_floor`'s ``objects``
+    that intersects ``region_of_interest`` (min_x, min_y, max_x, max_y), clipped to it.
 
     An object whose vertex order means something (a tag, corner 0 first) is reported
     whole, in its own order, when it intersects the region.
@@ -219,22 +218,22 @@ def in_region(
     low_x, low_y, high_x, high_y = region_of_interest
     region = None
     found = []
-    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline, confidence, height in objects:
+    for shape, ordered, label, (min_x, min_y, max_x, max_y), outline, confidence, height, under in objects:
         # Bounds first: an object wholly outside or wholly inside the region needs no GEOS
         # operation (the intersection was most of a one-camera request's time).
         if max_x < low_x or min_x > high_x or max_y < low_y or min_y > high_y:
             continue
         if low_x <= min_x and max_x <= high_x and low_y <= min_y and max_y <= high_y:
-            found.append(Located(outline, label, confidence, height))
+            found.append(Located(outline, label, confidence, height, under))
             continue
         if region is None:
             region = box(*region_of_interest)
         if ordered is not None:
             if shape.intersects(region):
-                found.append(Located(outline, label, confidence, height))
+                found.append(Located(outline, label, confidence, height, under))
             continue
         for part in _polygons(shape.intersection(region)):
-            found.append(Located(ring(part), label, confidence, height))
+            found.append(Located(ring(part), label, confidence, height, under))
     return found
 
 

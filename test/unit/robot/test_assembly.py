@@ -5,6 +5,7 @@ import math
 import pytest
 
 from drvs.robot.assembly import assemble
+from drvs.robot.mapping import HEADROOM
 from drvs.robot.mission import fleet_robot
 from drvs.robot.params import RobotParams
 from drvs.sim.world_file import load_world
@@ -31,3 +32,12 @@ def test_a_given_radius_and_per_camera_answers():
     params = RobotParams(world='worlds/crossing.yaml', robot='robot1', robot_radius=0.3, fused=False)
     parts = assemble(params, world, fleet_robot(world, 'robot1', '/robot1'), '/robot1')
     assert (parts.robot_radius, parts.fused_roles) == (0.3, [])
+
+
+def test_the_robot_drives_under_what_leaves_room_for_its_height_in_the_world_or_as_given():
+    world = load_world('worlds/crossing.yaml')
+    me = fleet_robot(world, 'robot1', '/robot1')
+    parts = assemble(RobotParams(world='worlds/crossing.yaml', robot='robot1'), world, me, '/robot1')
+    assert parts.map.head == pytest.approx(me.body.size[2] + HEADROOM)
+    given = RobotParams(world='worlds/crossing.yaml', robot='robot1', robot_height=0.5)
+    assert assemble(given, world, me, '/robot1').map.head == pytest.approx(0.5 + HEADROOM)

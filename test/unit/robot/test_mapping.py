@@ -252,3 +252,89 @@ def test_elevation_around_the_robot_keeps_the_obstacle_it_touches():
     assert mapping.obstacles == 1
     assert lethal_at(mapping, (1.5, 1.0)) and not lethal_at(mapping, (1.0, 1.0))
     assert not lethal_at(mapping, (3.5, 2.5))
+
+
+# -- heights: what the robot drives under, and the other robots in elevation's regions ------------------
+ELEVATION = ('obstacle', 'robot')
+CUT = dict(roles=ELEVATION, cut_roles=ELEVATION)
+SHELF = box(2.0, 0.5, 2.5, 2.5)  # a shelf 0.45 m high across the floor
+
+
+def test_a_shelf_with_room_for_the_robot_is_no_obstacle_and_cuts_a_top_only_view_of_it():
+    """vs1 saw floor under it (clearance 0.35 m, the robot is 0.2 m high: 0.25 needed); vs2 saw only
+    its top (0: unknown), a few centimetres off: its outline loses vs1's, rim and all."""
+    mapping = builder(robot_height=0.2, **CUT)
+    mapping.observe('obstacle', '/vs1', [SHELF], 0.0, levels=[(0.45, 0.35)])
+    mapping.observe('obstacle', '/vs2', [box(1.97, 0.48, 2.53, 2.52)], 0.0, levels=[(0.46, 0.0)])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert (mapping.obstacles, mapping.passable) == (0, 1)
+    assert not (mapping.grid.costs == LETHAL).any()
+
+
+@pytest.mark.parametrize(
+    'level, why',
+    [((0.45, 0.2), 'as high as the robot: no room to spare'), ((0.45, 0.0), 'nobody saw under it')],
+)
+def test_a_shelf_without_room_for_the_robot_is_an_obstacle(level, why):
+    mapping = builder(robot_height=0.2, **CUT)
+    mapping.observe('obstacle', '/vs1', [SHELF], 0.0, levels=[level])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert lethal_at(mapping, (2.25, 1.5)), why
+
+
+def test_a_higher_outline_over_a_shelf_is_something_else_and_stays():
+    """vs2's outline reaches 1 m: the shelf merged with a box on it or beside it. Not cut."""
+    mapping = builder(robot_height=0.2, **CUT)
+    mapping.observe('obstacle', '/vs1', [SHELF], 0.0, levels=[(0.45, 0.35)])
+    mapping.observe('obstacle', '/vs2', [box(2.0, 0.5, 2.5, 3.0)], 0.0, levels=[(1.0, 0.0)])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert lethal_at(mapping, (2.25, 1.5)) and lethal_at(mapping, (2.25, 2.8))
+
+
+def test_by_default_the_robot_drives_under_nothing():
+    mapping = builder(**CUT)
+    mapping.observe('obstacle', '/vs1', [SHELF], 0.0, levels=[(2.0, 1.8)])
+    mapping.update(0.0, fix_at((0.5, 0.5)), None)
+    assert lethal_at(mapping, (2.25, 1.5))
+
+
+def test_a_shelf_the_robot_is_under_stays_passable_though_its_camera_now_sees_the_robot_under_it():
+    """Once the robot is under it (or in front of it), the camera that proved room under the shelf
+    sees the robot as part of it, standing on the floor: the earlier proof cuts that outline,
+    but not an outline of it that does not hold the robot (something else came under it)."""
+    clock = ManualClock()
+    mapping = builder(robot_height=0.2, **CUT)
+    mapping.observe('obstacle', '/vs1', [SHELF], clock.now, levels=[(0.45, 0.35)])
+    mapping.update(clock.now, fix_at((0.5, 1.5)), None)
+    clock.now += 3.0
+    under = fix_at((2.2, 1.5), stamp=clock.now)
+    mapping.observe('obstacle', '/vs1', [SHELF], clock.now, levels=[(0.45, 0.0)])
+    mapping.update(clock.now, under, None)
+    assert (mapping.obstacles, mapping.passable) == (0, 0)  # cut by the proof, not passable now
+    clock.now += 5.0  # the robot's trail has left the shelf too
+    mapping.observe('obstacle', '/vs1', [SHELF], clock.now, levels=[(0.45, 0.0)])
+    mapping.update(clock.now, fix_at((0.5, 2.8), stamp=clock.now), None)
+    assert lethal_at(mapping, (2.25, 1.5))
+
+
+def test_other_robots_are_cut_out_of_elevations_regions_where_they_are_and_were():
+    """elevation finds the other robot as a static region, standing until its camera reports again:
+    the fleet's outline of it, now and in the last seconds, is cut out; a box it touches stays."""
+    clock = ManualClock()
+    mapping = builder(**CUT)
+    me = fix_at((0.5, 0.5))
+    other = box(1.85, 1.35, 2.15, 1.65)
+    crate = box(2.15, 1.3, 2.6, 1.7)
+    mapping.observe('robot', '/drvs', [other], clock.now)
+    mapping.observe('obstacle', '/vs1', [other.union(crate)], clock.now, levels=[(0.5, 0.0)])
+    mapping.update(clock.now, me, None)
+    assert lethal_at(mapping, (2.4, 1.5))  # the crate
+    clock.now += 1.0  # the other robot drove off north; elevation's old region of it stands
+    mapping.observe('robot', '/drvs', [box(1.85, 2.35, 2.15, 2.65)], clock.now)
+    mapping.update(clock.now, me, None)
+    assert lethal_at(mapping, (2.4, 1.5)) and lethal_at(mapping, (2.0, 2.5))
+    assert not lethal_at(mapping, (1.95, 1.5))  # no ghost where it stood
+    without = builder(roles=('obstacle',), cut_roles=('obstacle',))  # no fleet model: it stays
+    without.observe('obstacle', '/vs1', [other], 0.0)
+    without.update(0.0, me, None)
+    assert lethal_at(without, (2.0, 1.5))

@@ -1,6 +1,8 @@
 """Perception bookkeeping: request ids, superseded and repeated answers, watch answers, merging,
 the region-of-interest policy."""
 
+import math
+
 import pytest
 from shapely.geometry import box
 
@@ -337,3 +339,18 @@ def test_a_robot_that_loses_itself_looks_over_the_whole_floor_again(policy, now,
     assert (regions['self'].box != whole_floor(FLOOR)) == tracked
     assert regions['station'].box != whole_floor(FLOOR)
     assert regions['obstacle'].box == pytest.approx((0.875, 0.875, 6.75, 3.75))  # from the last fix
+
+
+def test_each_outline_keeps_its_top_and_clearance_and_nonsense_is_unknown(perception):
+    request_id = perception.requests.issue('obstacle')
+    found = perception.accept(
+        MODELS['obstacle'],
+        request_id,
+        '/vs1',
+        1.0,
+        [square(1.0, 1.0), [(0.0, 0.0), (1.0, 0.0)], square(2.0, 1.0)],  # the second has no area: dropped
+        levels=[(0.45, 0.35), (1.0, 0.0), (math.nan, -1.0)],
+    )
+    assert found.levels == ((0.45, 0.35), (0.0, 0.0))
+    with pytest.raises(PerceptionError, match='levels: expected 1, one per outline, got 0'):
+        perception.accept(MODELS['obstacle'], request_id, '/vs1', 1.1, [square(1.0, 1.0)], levels=[])

@@ -39,6 +39,7 @@ def square(x, y, side=0.5):
                 'bounding_box',
                 'label',
                 'height',
+                'clearance',
                 'track_id',
                 'confidence',
                 'velocity',
@@ -49,6 +50,7 @@ def square(x, y, side=0.5):
                 'geometry_msgs/Polygon',
                 'drvs/BoundingBox',
                 'string',
+                'float32',
                 'float32',
                 'uint32',
                 'float32',
@@ -184,6 +186,7 @@ def test_a_detected_object_carries_its_measured_height_and_defaults_to_unknown()
 
     outline = [(1.0, 2.0), (1.5, 2.0), (1.5, 2.5)]
     assert round_trip(points_to_detected_object(outline, 'x', 0.5, 0.75)).height == pytest.approx(0.75)
+    assert round_trip(points_to_detected_object(outline, clearance=0.4)).clearance == pytest.approx(0.4)
     assert round_trip(points_to_detected_object(outline)).height == 0.0
 
 
@@ -193,12 +196,13 @@ def test_the_fusion_stage_passes_heights_through_its_tracker():
     from drvs.server.tracker import Tracker
 
     outline = [(1.0, 2.0), (1.5, 2.0), (1.5, 2.5), (1.0, 2.5)]
-    (seen,) = observations([points_to_detected_object(outline, height=0.75)])
-    assert seen.height == pytest.approx(0.75)
+    (seen,) = observations([points_to_detected_object(outline, height=0.75, clearance=0.4)])
+    assert (seen.height, seen.clearance) == pytest.approx((0.75, 0.4))
     tracker = Tracker()
     tracker.frame('/vs1', 0.0, [seen])
     (track,) = tracker.tracks(0.0)
-    assert round_trip(detected_object(track)).height == pytest.approx(0.75)
+    sent = round_trip(detected_object(track))
+    assert (sent.height, sent.clearance) == pytest.approx((0.75, 0.4))
 
 
 def test_the_gateway_gives_every_field_of_a_detected_object():
@@ -206,7 +210,7 @@ def test_the_gateway_gives_every_field_of_a_detected_object():
     from drvs.ros.conversions import points_to_detected_object
     from drvs.ros.gateway import object_to_dict
 
-    detected = points_to_detected_object([(1.0, 2.0), (1.5, 2.0), (1.5, 2.5)], height=0.75)
+    detected = points_to_detected_object([(1.0, 2.0), (1.5, 2.0), (1.5, 2.5)], height=0.75, clearance=0.4)
     data = object_to_dict(detected)
     assert list(data) == list(DetectedObject.__slots__) == list(SCHEMAS['Object']['properties'])
-    assert data['height'] == pytest.approx(0.75)
+    assert (data['height'], data['clearance']) == pytest.approx((0.75, 0.4))

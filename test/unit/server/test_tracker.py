@@ -463,3 +463,28 @@ def test_pieces_of_one_object_keep_the_highest_top():
     result = tracker.frame('a', 1.0, halves)
     assert result.created == 0
     assert [v.height for v in tracker.tracks(1.0)] == [pytest.approx(1.2)]
+
+
+def test_a_track_has_the_room_under_it_that_a_camera_saw():
+    """One camera sees a shelf's top only (clearance 0, unknown), another sees floor under it: the
+    track has that one's clearance; a view of it merged with something higher proves nothing."""
+    tracker = Tracker()
+    shelf = square(2.0, 1.0, 1.0)
+    tracker.frame('a', 0.0, [Observation(shelf, height=0.45)])
+    tracker.frame('b', 0.0, [Observation(shelf, height=0.46, clearance=0.33)])
+    (view,) = tracker.tracks(0.0)
+    assert (view.height, view.clearance) == (pytest.approx(0.46), pytest.approx(0.33))
+    tracker.frame('c', 0.1, [Observation(square(2.0, 1.0, 1.2), height=1.0)])
+    assert [v.clearance for v in tracker.tracks(0.1)] == [0.0]
+
+
+def test_pieces_of_one_object_keep_the_lowest_underside():
+    tracker = Tracker()
+    for t in ticks(1.0):
+        tracker.frame('a', t, [Observation(square(2.0, 1.0, 2.0), height=0.4, clearance=0.3)])
+    halves = [
+        Observation(square(1.5, 1.0, 1.0), height=0.4, clearance=0.3),
+        Observation(square(2.5, 1.0, 1.0), height=0.4, clearance=math.nan),  # not a number: 0
+    ]
+    tracker.frame('a', 1.0, halves)
+    assert [v.clearance for v in tracker.tracks(1.0)] == [0.0]
