@@ -29,7 +29,7 @@ from drvs.ros.server_checks import MasterChecks
 from drvs.ros.server_forwarding import Forwarder, Outgoing, ReplyFirstService, watch_service_of
 from drvs.ros.server_fusion import FusionGlue
 from drvs.server import answers
-from drvs.server.dispatch import Busy, Dispatcher
+from drvs.server.dispatch import Busy, Dispatcher, OverShare
 from drvs.server.fusion import Delivery, FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
 from drvs.server.registration import Registrar
@@ -350,7 +350,8 @@ class DrvsServer:
         # The request itself is forwarded: every field unchanged (the caller's connection
         # header is not part of the message). They are sent once the reply is out.
         outgoing = Outgoing(request, callback_uri=callback_uri)
-        accepted, skipped = self.dispatcher.submit(names, outgoing, wake=False)  # raises Busy
+        # Raises Busy, or OverShare when the caller holds its fair share of every one of them.
+        accepted, skipped = self.dispatcher.submit(names, outgoing, wake=False, caller=_caller(request))
         self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
         if skipped and accepted:
             self.node.log_throttled(
@@ -409,9 +410,9 @@ class DrvsServer:
 
         try:
             accepted, skipped = self.dispatcher.submit(
-                names, Outgoing(forward, settled, fusion_uri), wake=False
+                names, Outgoing(forward, settled, fusion_uri), wake=False, caller=_caller(request)
             )
-        except Busy:
+        except (Busy, OverShare):
             with self.fusion.lock:
                 stage.cancel_round(wire_id)
             raise

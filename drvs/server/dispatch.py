@@ -2,8 +2,11 @@
 
 The DRVS server forwards through it: items queue per destination, at most one in flight
 each, ``max_pending`` in all; :meth:`Dispatcher.submit` refuses rather than queue without
-bound, and an item that can start without blocking is sent by the thread at hand. No ROS
-here; ``send`` and ``begin`` are any callables. How and why: docs/design.md ("Forwarding").
+bound, and an item that can start without blocking is sent by the thread at hand. Items
+submitted for a caller are shared fairly: a caller holds at most its fair share of a
+destination's places (:func:`fair_share`) and is refused ``RATE_LIMITED`` beyond it
+(:class:`OverShare`), so one caller's flood leaves room for every other caller. No ROS here;
+``send`` and ``begin`` are any callables. How and why: docs/design.md ("Forwarding").
 """
 
 from __future__ import annotations
@@ -13,11 +16,11 @@ import threading
 from collections import deque
 from collections.abc import Callable, Hashable, Iterable
 
-from drvs.common.status import BUSY, Refusal
+from drvs.common.status import BUSY, RATE_LIMITED, Refusal
 
 logger = logging.getLogger('rosout.' + __name__)
 
-__all__ = ['Dispatcher', 'Busy']
+__all__ = ['Dispatcher', 'Busy', 'OverShare', 'fair_share']
 
 Begin = Callable[[Hashable, object, Callable[[], None]], bool]
 """``begin(destination, item, done) -> bool``: start sending without blocking; True if it
@@ -30,6 +33,25 @@ class Busy(Refusal):
 
     def __init__(self, message: str, retry_after: float):
         super().__init__(BUSY, message, retry_after)
+
+
+class OverShare(Refusal):
+    """A caller holds its fair share of every destination it asked for: ``RATE_LIMITED``."""
+
+    def __init__(self, message: str, retry_after: float):
+        super().__init__(RATE_LIMITED, message, retry_after)
+
+
+def fair_share(places: int, callers: int) -> int:
+    """How many of a destination's ``places`` one of ``callers`` callers (those holding some, and
+    the one asking) may hold: a fifth of the places (at least one) stays free for a caller yet to
+    come, the rest is split evenly; at least one each.
+
+    >>> fair_share(10, 1), fair_share(10, 2), fair_share(10, 3), fair_share(10, 20), fair_share(1, 1)
+    (8, 4, 2, 1, 1)
+    """
+    spare = max(1, places // 5) if places > 1 else 0
+    return max(1, (places - spare) // max(1, callers))
 
 
 class Dispatcher:
@@ -63,7 +85,8 @@ class Dispatcher:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._queues: dict[Hashable, deque] = {}
-        self._in_flight: set[Hashable] = set()
+        self._in_flight: dict[Hashable, Hashable | None] = {}  # destination -> its item's caller
+        self._held: dict[tuple[Hashable, Hashable], int] = {}  # (destination, caller) -> queued + in flight
         self._ready: deque = deque()  # destinations with queued items and nothing in flight
         self._pending = 0
         self._threads: list[threading.Thread] = []
@@ -84,20 +107,31 @@ class Dispatcher:
         with self._lock:
             self._stopping = True
             self._pending -= sum(len(queue) for queue in self._queues.values())
+            for destination, queue in self._queues.items():
+                for caller, _ in queue:
+                    self._let_go(destination, caller)
             self._queues.clear()
             self._ready.clear()
             self._wake.notify_all()
         for thread in self._threads:
             thread.join(timeout)
 
-    def submit(self, destinations: Iterable[Hashable], item: object, wake: bool = True) -> tuple[list, list]:
+    def submit(
+        self,
+        destinations: Iterable[Hashable],
+        item: object,
+        wake: bool = True,
+        caller: Hashable | None = None,
+    ) -> tuple[list, list]:
         """Queue ``item`` for each destination; return (accepted, skipped) destinations.
 
-        A destination with ``max_per_destination`` items already is skipped. With
+        A destination with ``max_per_destination`` items already is skipped, and so is one where
+        ``caller`` (None: nobody's, no share) holds its :func:`fair_share` already. With
         ``wake`` false nothing is sent yet: call :meth:`release` with ``len(accepted)``
         soon, on this thread (a worker or a send that ends may take them first).
 
         :raises Busy: the pool has no room for all the accepted ones (nothing is queued then).
+        :raises OverShare: nothing accepted, and ``caller`` holds its share of some destination.
         """
         destinations = list(destinations)
         with self._lock:
@@ -105,9 +139,24 @@ class Dispatcher:
                 raise Busy('busy: the server is shutting down; try again later', self.retry_after)
             accepted: list[Hashable] = []
             skipped: list[Hashable] = []
+            over: list[tuple[Hashable, int, int]] = []  # (destination, held, share) for the refusal
             for destination in destinations:
                 load = len(self._queues.get(destination, ())) + (destination in self._in_flight)
-                (skipped if load >= self.max_per_destination else accepted).append(destination)
+                if caller is not None and (share := self._over_share(destination, caller)):
+                    skipped.append(destination)
+                    over.append((destination, *share))
+                elif load >= self.max_per_destination:
+                    skipped.append(destination)
+                else:
+                    accepted.append(destination)
+            if over and not accepted:
+                destination, held, share = over[0]
+                raise OverShare(
+                    f'rate limited: {caller} holds {held} of the {self.max_per_destination} forward places '
+                    f'of {destination}, its fair share while {self._callers(destination, caller) - 1} other '
+                    f'caller(s) wait there; try again after {self.retry_after:g} s',
+                    self.retry_after,
+                )
             if self._pending + len(accepted) > self.max_pending:
                 raise Busy(
                     f'busy: {self._pending} forwards pending, {len(accepted)} more would pass the limit of '
@@ -116,13 +165,42 @@ class Dispatcher:
                 )
             for destination in accepted:
                 queue = self._queues.setdefault(destination, deque())
-                queue.append(item)
+                queue.append((caller, item))
+                if caller is not None:
+                    self._held[destination, caller] = self._held.get((destination, caller), 0) + 1
                 if len(queue) == 1 and destination not in self._in_flight:
                     self._ready.append(destination)
             self._pending += len(accepted)
             if wake:
                 self._wake.notify(len(accepted))
             return accepted, skipped
+
+    def _callers(self, destination: Hashable, caller: Hashable) -> int:
+        """The callers holding places of ``destination``, ``caller`` counted whether or not it holds one."""
+        others = {c for (d, c), n in self._held.items() if d == destination and n > 0 and c != caller}
+        return len(others) + 1
+
+    def _over_share(self, destination: Hashable, caller: Hashable) -> tuple[int, int] | None:
+        """(held, share) when ``caller`` holds its fair share of ``destination`` already, else None."""
+        held = self._held.get((destination, caller), 0)
+        share = fair_share(self.max_per_destination, self._callers(destination, caller))
+        return (held, share) if held >= share else None
+
+    def _let_go(self, destination: Hashable, caller: Hashable | None) -> None:
+        """One of ``caller``'s items for ``destination`` is done with or dropped (lock held)."""
+        if caller is None:
+            return
+        key = (destination, caller)
+        left = self._held.get(key, 0) - 1
+        if left > 0:
+            self._held[key] = left
+        else:
+            self._held.pop(key, None)
+
+    def holding(self, destination: Hashable, caller: Hashable) -> int:
+        """How many of ``destination``'s places ``caller`` holds now (queued and in flight)."""
+        with self._lock:
+            return self._held.get((destination, caller), 0)
 
     def release(self, count: int) -> None:
         """Send up to ``count`` items that are ready (queued with ``submit(..., wake=False)``):
@@ -136,8 +214,8 @@ class Dispatcher:
                 if not self._ready or self._stopping:
                     return
                 destination = self._ready.popleft()
-                item = self._queues[destination].popleft()
-                self._in_flight.add(destination)
+                caller, item = self._queues[destination].popleft()
+                self._in_flight[destination] = caller
             self._begin_or_hand_over(destination, item)
 
     def drop(self, destination: Hashable) -> int:
@@ -147,6 +225,8 @@ class Dispatcher:
             if not queue:
                 return 0
             self._pending -= len(queue)
+            for caller, _ in queue:
+                self._let_go(destination, caller)
             try:
                 self._ready.remove(destination)
             except ValueError:
@@ -170,19 +250,20 @@ class Dispatcher:
         if self._begin(destination, item):
             return
         with self._lock:
-            self._in_flight.discard(destination)
+            caller = self._in_flight.pop(destination, None)
             queue = self._queues.get(destination)
             if queue is None or self._stopping:  # dropped meanwhile: so is the item
                 self._pending -= 1
+                self._let_go(destination, caller)
                 return
-            queue.appendleft(item)
+            queue.appendleft((caller, item))
             self._ready.appendleft(destination)
             self._wake.notify()
 
     def _finished(self, destination: Hashable) -> None:
         """The item in flight to ``destination`` is done with: start its next one, if any."""
         with self._lock:
-            self._in_flight.discard(destination)
+            self._let_go(destination, self._in_flight.pop(destination, None))
             self._pending -= 1
             queue = self._queues.get(destination)
             if not queue:
@@ -193,8 +274,8 @@ class Dispatcher:
                 self._ready.append(destination)
                 self._wake.notify()
                 return
-            item = queue.popleft()
-            self._in_flight.add(destination)
+            caller, item = queue.popleft()
+            self._in_flight[destination] = caller
         self._begin_or_hand_over(destination, item)
 
     def _work(self) -> None:
@@ -206,8 +287,8 @@ class Dispatcher:
                     return
                 destination = self._ready.popleft()
                 queue = self._queues[destination]
-                item = queue.popleft()
-                self._in_flight.add(destination)
+                caller, item = queue.popleft()
+                self._in_flight[destination] = caller
             if self.begin is not None and self._begin(destination, item):
                 continue
             try:

@@ -69,7 +69,11 @@ class ServerSettings(Settings):
         1000, 'forwards queued or running; beyond it requests are refused `BUSY`', check=at_least(1)
     )
     max_pending_per_vision_system: int = param(
-        10, 'a vision system this far behind is skipped by new requests', check=at_least(1)
+        10,
+        'a vision system this far behind is skipped by new requests; one caller holds at most its '
+        'fair share of these places (a fifth kept free, the rest split among the callers: 8 alone, '
+        '4 each of two), beyond it `RATE_LIMITED`',
+        check=at_least(1),
     )
     busy_retry_after: float = param(0.5, '`retry_after` of a `BUSY` refusal', unit='s', check=POSITIVE)
     unavailable_retry_after: float = param(

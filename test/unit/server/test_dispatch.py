@@ -4,7 +4,8 @@ import threading
 
 import pytest
 
-from drvs.server.dispatch import Busy, Dispatcher
+from drvs.common.status import RATE_LIMITED
+from drvs.server.dispatch import Busy, Dispatcher, OverShare
 from drvs.testing import wait_for
 
 
@@ -152,3 +153,56 @@ def test_an_exception_in_begin_is_logged_and_the_item_counts_as_sent(pool, caplo
     assert dispatcher.pending == 0
     assert 'sending to a failed unexpectedly' in caplog.text
     assert send.sent == []
+
+
+def test_doctests():
+    import doctest
+
+    import drvs.server.dispatch
+
+    assert doctest.testmod(drvs.server.dispatch).failed == 0
+
+
+def test_a_flooding_caller_gets_its_fair_share_and_another_caller_always_finds_room(pool):
+    recorder = Recorder(stuck={'cam'})  # nothing finishes: every place stays held
+    dispatcher = pool(recorder, workers=2, max_per_destination=10)
+    accepted = [dispatcher.submit(['cam'], f'flood{n}', caller='/flood')[0] for n in range(8)]
+    assert accepted == [['cam']] * 8 and dispatcher.holding('cam', '/flood') == 8
+    with pytest.raises(OverShare) as caught:
+        dispatcher.submit(['cam'], 'flood8', caller='/flood')
+    assert caught.value.status == RATE_LIMITED and caught.value.retry_after == 0.5
+    assert str(caught.value) == (
+        'rate limited: /flood holds 8 of the 10 forward places of cam, its fair share while 0 other '
+        'caller(s) wait there; try again after 0.5 s'
+    )
+    # Another caller finds room, and from now on the flood's share is half of what is not spare.
+    assert dispatcher.submit(['cam'], 'polite0', caller='/polite') == (['cam'], [])
+    assert dispatcher.submit(['cam'], 'polite1', caller='/polite') == (['cam'], [])
+    with pytest.raises(OverShare, match='while 1 other caller'):
+        dispatcher.submit(['cam'], 'flood9', caller='/flood')
+    # Items of nobody's (a watch's renewal, a fused delivery) are bounded by the places alone.
+    assert dispatcher.submit(['cam'], 'internal') == ([], ['cam'])
+
+
+def test_over_its_share_at_one_destination_a_caller_is_still_served_by_the_others(pool):
+    recorder = Recorder(stuck={'a', 'b'})
+    dispatcher = pool(recorder, workers=2, max_per_destination=5)
+    for n in range(4):
+        dispatcher.submit(['a'], n, caller='/r')
+    assert dispatcher.submit(['a', 'b'], 'next', caller='/r') == (['b'], ['a'])
+
+
+def test_places_come_back_when_items_are_sent_or_dropped(pool):
+    recorder = Recorder()
+    dispatcher = pool(recorder, workers=1, max_per_destination=10)
+    for n in range(8):
+        dispatcher.submit(['cam'], n, caller='/r')
+    wait_for(lambda: dispatcher.holding('cam', '/r') == 0, 5, 'every item sent')
+    recorder.stuck.add('cam')
+    for n in range(8):
+        dispatcher.submit(['cam'], n, caller='/r')
+    wait_for(lambda: len(recorder.items('cam')) == 9, 5, 'the first of them in flight')
+    assert dispatcher.drop('cam') == 7 and dispatcher.holding('cam', '/r') == 1  # the one in flight
+    recorder.release.set()
+    wait_for(lambda: dispatcher.holding('cam', '/r') == 0, 5, 'the one in flight done')
+    assert dispatcher.pending == 0
