@@ -142,15 +142,15 @@ class Dispatcher:
             over: list[tuple[Hashable, int, int]] = []  # (destination, held, share) for the refusal
             for destination in destinations:
                 load = len(self._queues.get(destination, ())) + (destination in self._in_flight)
-                if caller is not None and (share := self._over_share(destination, caller)):
+                if caller is not None and (holding := self._over_share(destination, caller)):
                     skipped.append(destination)
-                    over.append((destination, *share))
+                    over.append((destination, *holding))
                 elif load >= self.max_per_destination:
                     skipped.append(destination)
                 else:
                     accepted.append(destination)
             if over and not accepted:
-                destination, held, share = over[0]
+                destination, held, _ = over[0]
                 raise OverShare(
                     f'rate limited: {caller} holds {held} of the {self.max_per_destination} forward places '
                     f'of {destination}, its fair share while {self._callers(destination, caller) - 1} other '

@@ -206,6 +206,10 @@ class SharedRegistry(Registry):
         self._renewals: dict[str, float] = {}  # renewed here since the last batch -> when (clock)
         self._pending: list[tuple] = []  # writes that found the store out of reach, in order
         self._applying = False  # a removal comes from the change log: not written back
+        # Read-your-writes: a change log read that a write of ours overtook holds rows older than
+        # the cache; the names written since the read began are left to our own later log line.
+        self._writes = 0  # the cache's own writes to the store so far
+        self._written: dict[str, int] = {}  # name -> the number of the cache's newest write of it
         self._next_flush = self._next_sweep = self._next_heartbeat = self._next_try = -math.inf
         self.down_since: float | None = None  # on the clock, while the store is out of reach
         self.down_reason = ''
@@ -263,6 +267,7 @@ class SharedRegistry(Registry):
         except StoreUnavailable as error:
             self._went_down(error)
             raise self._unavailable() from None
+        self._wrote(name)
         self._claimed.add(name)
         self._renewals.pop(name, None)
 
@@ -270,7 +275,13 @@ class SharedRegistry(Registry):
         self._claimed.discard(entry.service_name)
         self._renewals.pop(entry.service_name, None)
         if not self._applying:
+            self._wrote(entry.service_name)
             self._write(('delete', entry.service_name))
+
+    def _wrote(self, name: str) -> None:
+        """Called with the lock held: the cache wrote ``name``'s row (or its removal) to the store."""
+        self._writes += 1
+        self._written[name] = self._writes
 
     def _live(self, entry: Registration, now: float) -> bool:
         # A lease renewed through another replica is that replica's to keep: the entry stays until
@@ -403,32 +414,54 @@ class SharedRegistry(Registry):
         return retired
 
     def follow(self) -> list[Registration]:
-        """Apply the change log since the cache's position; the entries removed."""
+        """Apply the change log since the cache's position; the entries removed.
+
+        The rows are read outside the lock, so a registration, move or removal through this
+        replica may overtake the read: then the changes from the first of the names it wrote on
+        are left for the next call, which reads them again, newer than the cache's write.
+        """
+        with self._lock:
+            mark = self._writes
         changes = self.store.changes(self._position)
         if changes is None:  # the log was pruned past our position: start over from a snapshot
             position, entries = self.store.snapshot()
             with self._lock:
-                return self._apply_snapshot(position, entries)
+                return self._apply_snapshot(position, entries, mark)
         removed = []
         with self._lock:
             for change in changes:
+                if self._written.get(change.service_name, 0) > mark:
+                    break  # a write of ours overtook the read: the rest is read again next time
                 gone = self._apply(change.service_name, change.entry)
                 if gone is not None:
                     removed.append(gone)
                 self._position = change.seq
+            else:
+                self._forget_writes(mark)
         return removed
 
-    def _apply_snapshot(self, position: int, entries: list[StoredEntry]) -> list[Registration]:
-        """Called with the lock held: the cache made equal to ``entries``."""
+    def _forget_writes(self, mark: int) -> None:
+        """Called with the lock held: the writes a read begun after them has seen are no longer news."""
+        self._written = {name: number for name, number in self._written.items() if number > mark}
+
+    def _apply_snapshot(
+        self, position: int, entries: list[StoredEntry], mark: int | None = None
+    ) -> list[Registration]:
+        """Called with the lock held: the cache made equal to ``entries`` (but for the names written
+        since the write ``mark``, when the snapshot was read after it)."""
+        mark = self._writes if mark is None else mark
         removed = []
         names = {entry.service_name for entry in entries}
         for name in [name for name in self._entries if name not in names]:
-            gone = self._apply(name, None)
-            if gone is not None:
-                removed.append(gone)
+            if self._written.get(name, 0) <= mark:
+                gone = self._apply(name, None)
+                if gone is not None:
+                    removed.append(gone)
         for entry in entries:
-            self._apply(entry.service_name, entry)
+            if self._written.get(entry.service_name, 0) <= mark:
+                self._apply(entry.service_name, entry)
         self._position = position
+        self._forget_writes(mark)
         return removed
 
     def _apply(self, name: str, stored: StoredEntry | None) -> Registration | None:

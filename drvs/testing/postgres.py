@@ -17,6 +17,8 @@ __all__ = ['PostgresCluster', 'shared_registry']
 
 SCRIPT = REPO / 'scripts' / 'postgres.sh'
 START_TIMEOUT = 60.0
+TABLES = ('drvs_vision_systems', 'drvs_ejections', 'drvs_watches')
+"""The tables a test empties (:meth:`PostgresCluster.empty`): what the registry keeps."""
 
 
 class PostgresCluster:
@@ -41,6 +43,15 @@ class PostgresCluster:
             raise RuntimeError(f'scripts/postgres.sh start failed ({done.returncode}): {done.stderr.strip()}')
         self.dsn = done.stdout.strip().splitlines()[-1]
         return self.dsn
+
+    def empty(self) -> None:
+        """Delete every registration, ejection and watch (tables not created yet are left alone)."""
+        import psycopg  # only where PostgreSQL is installed (scripts/setup.sh --postgres)
+
+        with psycopg.connect(self.dsn, autocommit=True) as connection:
+            for table in TABLES:
+                if connection.execute('SELECT to_regclass(%s)', (table,)).fetchone()[0]:
+                    connection.execute(f'DELETE FROM {table}')
 
     def stop(self) -> None:
         subprocess.run(

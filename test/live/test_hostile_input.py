@@ -686,10 +686,17 @@ def services_on_master(ros) -> dict[str, tuple[str, str]]:
     return found
 
 
-@pytest.fixture
-def fuzz_graph(ros, monkeypatch, tmp_path):
-    """The server (limits out of the way), CAMERA registered once on (0, 0)-(2, 2), MOVER unregistered."""
-    graph = Graph(ros, monkeypatch, tmp_path, **FUZZ_PARAMS)
+@pytest.fixture(params=['memory', 'postgresql'])
+def fuzz_graph(request, ros, monkeypatch, tmp_path):
+    """The server (limits out of the way) with its registry in memory or in a private PostgreSQL
+    cluster (emptied: nothing but text reaches SQL, and only as parameters), CAMERA registered once
+    on (0, 0)-(2, 2), MOVER unregistered."""
+    params = dict(FUZZ_PARAMS)
+    if request.param == 'postgresql':
+        postgres = request.getfixturevalue('postgres')
+        postgres.empty()
+        params['registry'] = postgres.dsn
+    graph = Graph(ros, monkeypatch, tmp_path, **params)
     graph.camera('cam', square(0, 0, 2, 2))
     mover = graph.camera('mover', [], wait=False, register=False)
     ros.wait_for_service(MOVER, node=mover)

@@ -34,10 +34,7 @@ def records(path, kind):
 @pytest.fixture
 def server(ros, postgres, monkeypatch, tmp_path):
     """A drvs_server on the module's database (emptied), a callback recorder, clients to its services."""
-    with psycopg.connect(postgres.dsn, autocommit=True) as connection:
-        for table in ('drvs_vision_systems', 'drvs_ejections', 'drvs_watches'):
-            if connection.execute('SELECT to_regclass(%s)', (table,)).fetchone()[0]:
-                connection.execute(f'DELETE FROM {table}')
+    postgres.empty()
     monkeypatch.setenv('ROS_MASTER_URI', ros.master.uri)
     monkeypatch.setenv('ROS_HOSTNAME', '127.0.0.1')
     node = ros.start_node(

@@ -20,13 +20,6 @@ SERVERS = ['/drvs', '/drvs_b']
 CAMERAS = ('/vs1/detect_object_boundary', '/vs2/detect_object_boundary')
 
 
-def empty(dsn):
-    with psycopg.connect(dsn, autocommit=True) as connection:
-        for table in ('drvs_vision_systems', 'drvs_ejections', 'drvs_watches'):
-            if connection.execute('SELECT to_regclass(%s)', (table,)).fetchone()[0]:
-                connection.execute(f'DELETE FROM {table}')
-
-
 def owners(connection):
     """(the replica each camera renews through, the owner of each of the robot's live watches)."""
     cameras = dict(connection.execute('SELECT service_name, replica FROM drvs_vision_systems').fetchall())
@@ -56,7 +49,7 @@ def test_a_robot_and_vision_systems_move_to_the_other_replica_within_a_lease_of_
     graph, postgres, request
 ):
     ros = graph
-    empty(postgres.dsn)
+    postgres.empty()
     server = {
         'registry': postgres.dsn,
         'lease': LEASE,

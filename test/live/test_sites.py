@@ -8,7 +8,6 @@ import json
 import types
 import urllib.request
 
-import psycopg
 import pytest
 
 from drvs.gateway.tokens import add_token
@@ -26,10 +25,7 @@ CAMERA = '/vs1/detect_object_boundary'
 @pytest.fixture(scope='module')
 def sites(postgres, tmp_path_factory):
     """Both sites, started once for the module's tests (each asks with its own request ids)."""
-    with psycopg.connect(postgres.dsn, autocommit=True) as connection:
-        for table in ('drvs_vision_systems', 'drvs_ejections', 'drvs_watches'):
-            if connection.execute('SELECT to_regclass(%s)', (table,)).fetchone()[0]:
-                connection.execute(f'DELETE FROM {table}')
+    postgres.empty()
     folder = tmp_path_factory.mktemp('sites')
     output, token = folder / 'callbacks.jsonl', add_token(folder / 'tokens.json', 'robot')
     url = f'http://127.0.0.1:{free_port()}'

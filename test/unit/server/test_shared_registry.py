@@ -304,3 +304,31 @@ def test_a_server_started_on_the_database_has_every_registration(replicas, dsn, 
         assert restarted.match((0.2, 0.2, 0.4, 0.4), 'sift') == ['/a']
     finally:
         store.close()
+
+
+class Overtaken:
+    """A store whose change log read is overtaken by ``write()``, run after the rows were read."""
+
+    def __init__(self, inner, write):
+        self.inner, self.write_between = inner, write
+        self.replica = inner.replica
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def changes(self, after):
+        changes = self.inner.changes(after)
+        self.write_between()
+        return changes
+
+
+def test_a_move_that_overtakes_a_change_log_read_is_not_undone_by_it(replicas):
+    first, _ = replicas
+    first.register('/a', square(0, 0), provider='/vs')
+    first.register('/a', square(5, 5), provider='/vs')  # both moves in the log, not followed yet
+    first.store = Overtaken(first.store, lambda: first.register('/a', square(9, 9), provider='/vs'))
+    first.follow()  # read: the row at (5, 5); the move to (9, 9) came in meanwhile
+    assert first.match((9.2, 9.2, 9.4, 9.4)) == ['/a'] and first.match((5.2, 5.2, 5.4, 5.4)) == []
+    first.store = first.store.inner
+    first.follow()  # the log read again, from where the overtaken read stopped
+    assert first.match((9.2, 9.2, 9.4, 9.4)) == ['/a'] and first.match((0.2, 0.2, 0.4, 0.4)) == []
