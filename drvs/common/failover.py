@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from drvs.common.settings import ParamError
+from drvs.common.settings import POSITIVE, ParamError, param
 from drvs.common.status import UNAVAILABLE
 from drvs.common.validation import ValidationError, global_ros_name
 
@@ -36,6 +36,7 @@ __all__ = [
     'moves_on',
     'namespace_of',
     'namespaces',
+    'server_return_param',
     'service_names',
 ]
 
@@ -45,6 +46,17 @@ RETURN_AFTER = 30.0
 
 RETURN_AFTER_MAX = 300.0
 """The longest wait between two tries of a first server that still does not answer."""
+
+
+def server_return_param():
+    """The ``~server_return`` parameter of the nodes that take ``~servers`` (a settings field)."""
+    return param(
+        RETURN_AFTER,
+        'with several `~servers`: how long after leaving the first it asks the first again (it stays '
+        'there if it answers; if not, it goes back and waits twice as long, up to 300 s)',
+        unit='s',
+        check=POSITIVE,
+    )
 
 
 def moves_on(status: int | None) -> bool:

@@ -58,7 +58,14 @@ MOVER_AREA = 0.3
 """Of the robot's own footprint: a piece of the fleet role's outlines at least this large is another robot
 (it moves, keeps clear); smaller ones (the edge of this robot's own blob) are plain obstacles."""
 OWN_SHARE = 0.1
-"""A moving outline this much inside the robot's own body, trail or station is no mover (it is not swept)."""
+"""A moving outline of one camera's this much inside the robot's own body, trail or station is no mover
+(it is not swept): the robot's own motion, or its ghost, seen by a ``motion`` or background model."""
+OWN_BODY_SHARE = 0.5
+"""A fused track that covers this much of the robot's body where it is now is no mover. For fused
+roles (tracks of colour models, with velocities) neither the trail nor :data:`OWN_SHARE` count: a
+person walking across the floor the robot has just left stays a person. (With them, a walker in the
+crossing world vanished from the map as it stepped onto the robot's trail, and the robot drove into
+it.)"""
 MAX_AGE = 1.0
 """Seconds: something moving seen longer ago than this is swept as if seen this long ago."""
 OWN_TRAIL = 4.0
@@ -288,10 +295,13 @@ class MapBuilder:
         body = own_body(fix, self.robot_size)
         if body is not None:
             bodies.append(body)
-        bodies.append(self.trail.update(now, fix))
+        trail = self.trail.update(now, fix)
+        bodies.append(trail)
         if position is not None:
             bodies.append(Point(position).buffer(self.trail.radius))
         own = unary_union(bodies)
+        # Where the robot and its station are now, without its trail (for the fused roles).
+        here = [b for b in bodies if b is not trail]
         # elevation's and foreground's regions lose the robot and station grown by the margin: their
         # outline of them, a frame older or inset by half a cell, would leave a rim.
         grown = [*bodies, *(f.outline.buffer(BODY_MARGIN) for f in (fix, station) if f is not None)]
@@ -314,7 +324,9 @@ class MapBuilder:
                 cut = bodies if role == FLEET_ROLE else [*grown, *others]
                 pieces = [(piece, v) for o, v in found for piece in cut_bodies([o], cut)]
             else:
-                pieces = [(o, v) for o, v in found if exclude_bodies([o], bodies)]
+                pieces = [
+                    (o, v) for o, v in found if exclude_bodies([o], here if role in self.fused else bodies)
+                ]
             if role in STATIC_ROLES:
                 objects.extend(piece for piece, _ in pieces)
                 continue
@@ -324,7 +336,11 @@ class MapBuilder:
             big: list[tuple[Polygon, XY | None]] = []
             plain: list[tuple[Polygon, XY | None]] = []
             for piece, v in pieces:
-                mover = piece.area >= self.min_mover and piece.intersection(own).area < OWN_SHARE * piece.area
+                if role in self.fused:  # a track: not the robot unless it covers the robot now
+                    mine = any(piece.intersection(b).area >= OWN_BODY_SHARE * b.area for b in here)
+                else:
+                    mine = piece.intersection(own).area >= OWN_SHARE * piece.area
+                mover = piece.area >= self.min_mover and not mine
                 (big if mover else plain).append((piece, v))
             movers = self.trackers[role].update(
                 heard.get(role, -math.inf), [p for p, _ in big], [v for _, v in big]

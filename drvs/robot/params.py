@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drvs.common.failover import RETURN_AFTER, namespace_of, namespaces, service_names
+from drvs.common.failover import namespace_of, namespaces, server_return_param, service_names
 from drvs.common.settings import NON_NEGATIVE, POSITIVE, REQUIRED, Settings, one_of, param
 from drvs.robot.mapping import MAX_CELLS
 
@@ -218,13 +218,7 @@ class RobotParams(Settings):
         default_text='the namespace of `~watch_service` (`watch`) or `~drvs_service` (`poll`): `[/drvs]`',
         separator=',',
     )
-    server_return: float = param(
-        RETURN_AFTER,
-        'with several `~servers`: how long after leaving the first it asks the first again (it stays '
-        'there if it answers; if not, it goes back and waits twice as long, up to 300 s)',
-        unit='s',
-        check=POSITIVE,
-    )
+    server_return: float = server_return_param()
     once: bool = param(False, 'exit when done: 0 at the station, 1 otherwise')
 
     def __post_init__(self):

@@ -288,6 +288,20 @@ class Yielding:
         return movers[min(near)[1]] if near else None
 
 
+def _out_of_the_way(position: Point, people: Sequence[Mover], speed: float) -> Point | None:
+    """A velocity of ``speed`` square to the way the nearest of ``people`` walks, away from the line it
+    walks along (left of it when the robot stands on that line); None without a speed."""
+    if speed <= 0:
+        return None
+    person = min(people, key=lambda p: math.dist(p.position, position))
+    vx, vy = person.velocity
+    norm = math.hypot(vx, vy)
+    nx, ny = -vy / norm, vx / norm  # left of its way
+    if nx * (position[0] - person.position[0]) + ny * (position[1] - person.position[1]) < 0:
+        nx, ny = -nx, -ny
+    return (nx * speed + 0.0, ny * speed + 0.0)  # (+ 0.0: no -0.0)
+
+
 def clear_of_people(
     position: Point,
     planned: Point,
@@ -302,12 +316,14 @@ def clear_of_people(
 
     A velocity is clear when, kept for ``horizon`` seconds, the predicted closest approach to each
     person moving at their velocity stays over the robot's radius, the person's and
-    :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still, and
-    ``back`` (the way the robot came, reversed: floor it has just been on) where ``free`` holds
-    the point it reaches in a second; with none clear, the one that comes least close from
-    :data:`SETTLE` seconds on (when it is already too close, the way out). So the
-    robot waits before a person's way, and backs out of it rather than wait in it; it never
-    steps onto floor off its way (which its cameras might not see).
+    :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still,
+    stepping aside (square to the nearest person's way, away from the line they walk along) and
+    ``back`` (the way the robot came, reversed: floor it has just been on), the last two where
+    ``free`` holds the point they reach in a second; with none clear, the one that comes least close
+    from :data:`SETTLE` seconds on (when it is already too close, the way out). So the robot waits
+    before a person's way, and steps out of it rather than wait in it. (Backing alone was not
+    enough: a robot that came from where the person was coming from stood in their way, backing
+    towards them being worse, until it was walked into.)
 
     >>> from shapely.geometry import box
     >>> person = Mover(box(1.8, -0.2, 2.2, 0.2), (-0.5, 0.0))
@@ -315,8 +331,11 @@ def clear_of_people(
     (0.0, 0.0)
     >>> clear_of_people((0.0, 0.0), (0.0, 0.5), [person], 0.2, 2.0)[0]  # moving out of the way
     (0.0, 0.5)
-    >>> clear_of_people((1.0, 0.0), (0.0, 0.0), [person], 0.2, 2.0, back=(0.0, -0.5))[0]  # in its way
+    >>> clear_of_people((1.0, 0.0), (0.0, 0.0), [person], 0.2, 2.0, back=(0.5, 0.0))[0]  # in its way
     (0.0, -0.5)
+    >>> coming_down = Mover(box(-0.2, 0.8, 0.2, 1.2), (0.0, -0.3))  # where the robot came from
+    >>> clear_of_people((0.0, 0.0), (0.0, 0.0), [coming_down], 0.2, 2.0, back=(0.0, 0.5))[0]
+    (0.5, 0.0)
     >>> walking_at_it = Mover(box(1.2, 0.1, 1.6, 0.5), (0.0, -0.3))  # already close, coming nearer
     >>> clear_of_people((1.0, 0.0), (0.5, 0.0), [walking_at_it], 0.2, 2.0, back=(-0.5, 0.0))[0]
     (-0.5, 0.0)
@@ -325,8 +344,11 @@ def clear_of_people(
     if not moving:
         return planned, None
     candidates = [planned, (planned[0] / 2, planned[1] / 2), (0.0, 0.0)]
-    if math.hypot(*back) > 0 and free((position[0] + back[0], position[1] + back[1])):
-        candidates.append(back)
+    step = math.hypot(*back) or math.hypot(*planned)
+    aside = _out_of_the_way(position, moving, step)
+    for way in (aside, back):
+        if way is not None and math.hypot(*way) > 0 and free((position[0] + way[0], position[1] + way[1])):
+            candidates.append(way)
     best: tuple[float, Point, Mover | None] | None = None
     for velocity in candidates:
         closest, later, nearest = math.inf, math.inf, None

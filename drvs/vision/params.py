@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drvs.common.failover import RETURN_AFTER, namespace_of, namespaces, service_names
+from drvs.common.failover import namespace_of, namespaces, server_return_param, service_names
 from drvs.common.settings import (
     NON_NEGATIVE,
     POSITIVE,
@@ -145,13 +145,7 @@ class VisionSystemParams(Settings):
         default_text="`~register_service`'s namespace: `[/drvs]`",
         separator=',',
     )
-    server_return: float = param(
-        RETURN_AFTER,
-        'with several `~servers`: how long after leaving the first it asks the first again (it stays '
-        'there if it answers; if not, it goes back and waits twice as long, up to 300 s)',
-        unit='s',
-        check=POSITIVE,
-    )
+    server_return: float = server_return_param()
     register_timeout: float = param(2.0, 'limit on one registration call', unit='s', check=POSITIVE)
     retry_period: float = param(
         1.0,

@@ -338,3 +338,18 @@ def test_other_robots_are_cut_out_of_elevations_regions_where_they_are_and_were(
     without.observe('obstacle', '/vs1', [other], 0.0)
     without.update(0.0, me, None)
     assert lethal_at(without, (2.0, 1.5))
+
+
+def test_a_person_walking_over_the_robots_trail_is_still_a_person():
+    clock = ManualClock(0.0)
+    mapping = MapBuilder(
+        FLOOR, SIZE, RADIUS, ('human',), TTL, LINGER, 1.0, 0.05, horizon=1.0, fused=('human',)
+    )
+    for x in (1.0, 1.3, 1.6):  # the robot drives east along y = 1.0: its trail
+        clock.now += 0.5
+        mapping.update(clock.now, fix_at((x, 1.0), clock.now), None)
+    # A walker coming south, a third of its outline on the floor the robot has just left.
+    walker = box(1.05, 1.05, 1.35, 1.35)
+    mapping.observe('human', '/drvs', [walker], clock.now, velocities=[(0.0, -0.3)])
+    mapping.update(clock.now, fix_at((1.6, 1.0), clock.now), None)
+    assert [p.velocity for p in mapping.people] == [(0.0, -0.3)]
