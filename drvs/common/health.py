@@ -127,6 +127,7 @@ def server_health(
     tracks: int = 0,
     registry: str = 'memory',
     registry_problem: str | None = None,
+    site: str = '',
 ) -> Health:
     """The server's health from its registry, its forwarding pool and its refusals.
 
@@ -143,6 +144,7 @@ def server_health(
     :param tracks: fused tracks now (a value only).
     :param registry: where the registry lives: ``memory`` or the database (a value only).
     :param registry_problem: why the registry's database is out of reach, None when it is not.
+    :param site: the server's ``~site`` ('' : the only one; a value only).
 
     ======================================================  =======  ===============================
     rule                                                    level    message
@@ -201,6 +203,7 @@ def server_health(
     values = [
         ('registered vision systems', str(registered)),
         ('registry', f'{registry} (unreachable)' if registry_problem else registry),
+        ('site', site or '(the only one)'),
         ('pending forwards', str(pending_forwards)),
         ('max pending forwards', str(max_pending)),
         ('rate-limited callers', str(rate_limited_callers)),

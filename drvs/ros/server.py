@@ -664,6 +664,7 @@ class DrvsServer:
         return server_health(
             registry=self.registry.store.where if shared else 'memory',
             registry_problem=self.registry.problem() if shared else None,
+            site=self.settings.site,
             registered=len(self.registry),
             pending_forwards=self.dispatcher.pending,
             max_pending=self.settings.max_pending,

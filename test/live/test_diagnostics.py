@@ -87,6 +87,11 @@ def test_server_rules(facts, level, message):
     assert (verdict.level, verdict.message) == (level, message)
 
 
+def test_server_values_name_its_site():
+    values = dict(server_health(**{**SERVER, 'site': 'b'}).values)
+    assert values['site'] == 'b'
+
+
 def test_server_values_name_every_refusal_status():
     verdict = server_health(
         **{**SERVER, 'refusals_by_status': {'BUSY': 4, 'WEIRD': 1}, 'refusals_recent': {'BUSY': 1}}
@@ -94,6 +99,7 @@ def test_server_values_name_every_refusal_status():
     assert verdict.values == [
         ('registered vision systems', '2'),
         ('registry', 'memory'),
+        ('site', '(the only one)'),
         ('pending forwards', '10'),
         ('max pending forwards', '100'),
         ('rate-limited callers', '0'),
