@@ -18,19 +18,20 @@ from drvs.algorithms import AlgorithmSet, default_algorithms
 from drvs.common.health import Health, server_health
 from drvs.common.rate_limit import RateLimiter
 from drvs.common.status import ACCEPTED, BUSY, INVALID, RATE_LIMITED, Refusal, name
-from drvs.common.validation import ValidationError, ros_name, watch_terms
+from drvs.common.validation import ValidationError, ros_name
 from drvs.msg import Registry as RegistryMsg
 from drvs.msg import ServerStats
 from drvs.ros.conversions import msg_to_box, polygon_to_points, refusal_to_detect_response
 from drvs.ros.markers import registry_markers
 from drvs.ros.messages import header, registry_to_msg
 from drvs.ros.node import NodeScaffold, internal_error, refusal_response
-from drvs.ros.server_checks import MasterChecks
-from drvs.ros.server_forwarding import Forwarder, Outgoing, ReplyFirstService, watch_service_of
-from drvs.ros.server_fusion import FusionGlue
+from drvs.ros.server_checks import MasterChecks, caller_of
+from drvs.ros.server_forwarding import Forwarder, Outgoing, ReplyFirstService
+from drvs.ros.server_fusion import FusedRequests, FusionGlue
+from drvs.ros.server_watches import ServerWatches
 from drvs.server import answers
-from drvs.server.dispatch import Busy, Dispatcher, OverShare
-from drvs.server.fusion import Delivery, FusionSettings, FusionStage
+from drvs.server.dispatch import Dispatcher
+from drvs.server.fusion import FusionSettings, FusionStage
 from drvs.server.params import ServerSettings
 from drvs.server.registration import Registrar
 from drvs.server.registry import REGISTERED, Registration
@@ -39,23 +40,19 @@ from drvs.server.shared_registry import SharedRegistry
 from drvs.server.sites import remote, requested_callback_uri
 from drvs.server.tracker import TrackerSettings
 from drvs.server.watch_sharing import WatchSharing, open_registry
-from drvs.server.watch_table import ONE_SHOT, Forward, WatchTable
+from drvs.server.watch_table import WatchTable
 from drvs.srv import (
     DetectObjectBoundary,
-    DetectObjectBoundaryRequest,
     DetectObjectBoundaryResponse,
     RegisterVisionService,
     RegisterVisionServiceResponse,
     WatchObjectBoundary,
-    WatchObjectBoundaryResponse,
 )
 
 __all__ = ['DrvsServer']
 
 SHARED_SYNC_PERIOD = 0.1
 """Seconds between two looks at a shared registry's change log (renewals and sweeps: their own periods)."""
-WATCH_WAIT = 0.5
-"""Longest wall-clock wait of the watch loop between two looks at the clock (ROS time may run faster)."""
 STATS_PERIOD = 1.0
 """Seconds between two ``~stats`` messages at most."""
 THROTTLED = (BUSY, RATE_LIMITED)
@@ -80,11 +77,7 @@ STATS_FIELDS = (
 """The counters of drvs/ServerStats (``watches``: the number standing)."""
 
 
-def _caller(request) -> str:
-    return request._connection_header.get('callerid', '')
-
-
-class DrvsServer:
+class DrvsServer(ServerWatches, FusedRequests):
     """The server's ROS glue; :meth:`start` creates the services, topics and threads."""
 
     def __init__(self, settings: ServerSettings):
@@ -227,7 +220,7 @@ class DrvsServer:
 
     # -- refusals ----------------------------------------------------------------------------
     def _rate_limit(self, request) -> Refusal | None:
-        caller = _caller(request)
+        caller = caller_of(request)
         wait = self.rate_limiter.take(caller)
         if wait <= 0:
             return None
@@ -245,7 +238,7 @@ class DrvsServer:
     def _log_refusal(self, what: str, request, refusal: Refusal) -> None:
         self.node.refused(refusal)
         self.node.counters.add(refused=1)
-        args = (what, request.request_id, _caller(request) or '?', name(refusal.status), refusal.message)
+        args = (what, request.request_id, caller_of(request) or '?', name(refusal.status), refusal.message)
         if refusal.status in THROTTLED:  # a saturated server refuses thousands a second
             self.node.log_throttled(
                 (what, refusal.status), rospy.loginfo, '%s %r from %s refused (%s): %s', *args
@@ -256,7 +249,7 @@ class DrvsServer:
     # -- registration ------------------------------------------------------------------------
     def handle_register(self, request) -> RegisterVisionServiceResponse:
         try:
-            return self._register(request, _caller(request))
+            return self._register(request, caller_of(request))
         except Refusal as refusal:
             return self._refuse_register(refusal)
         except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
@@ -351,7 +344,7 @@ class DrvsServer:
         # header is not part of the message). They are sent once the reply is out.
         outgoing = Outgoing(request, callback_uri=callback_uri)
         # Raises Busy, or OverShare when the caller holds its fair share of every one of them.
-        accepted, skipped = self.dispatcher.submit(names, outgoing, wake=False, caller=_caller(request))
+        accepted, skipped = self.dispatcher.submit(names, outgoing, wake=False, caller=caller_of(request))
         self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
         if skipped and accepted:
             self.node.log_throttled(
@@ -369,81 +362,6 @@ class DrvsServer:
                 self.settings.busy_retry_after,
             )
         return self._accepted(len(accepted), len(skipped))
-
-    def _detect_fused(
-        self, request, algorithm: str, region, names: list[str]
-    ) -> DetectObjectBoundaryResponse:
-        """A fused request: a round of the fusion stage, forwarded with its callback service and id;
-        the robot is called back once, by the fusion stage (docs/interface.md, "Fused mode")."""
-        answer = self._sent_to_none(region, algorithm) if not names else None  # may refuse UNSUPPORTED
-        stage = self.fusion.stage
-        with self.fusion.lock:
-            wire_id = stage.open_round(
-                _caller(request),
-                request.request_id,
-                request.algorithm,
-                region,
-                request.callback_service,
-                names,
-            )
-        self.node.counters.add(fused_requests=1)
-        if answer is not None:
-            self.fusion.wake.set()  # answered at once: no vision system covers the region
-            return answer
-        forward = DetectObjectBoundaryRequest(
-            algorithm=request.algorithm,
-            region_of_interest=request.region_of_interest,
-            callback_service=self.fusion.service_name,
-            request_id=wire_id,
-            fused=True,  # the vision system calls back even when it finds nothing
-        )
-        # A vision system at another site calls our fusion service at its address on our master.
-        fusion_uri = self.checks.callback(self.fusion.service_name) if self._any_remote(names) else ''
-
-        def settled(vision_system: str, reply) -> None:
-            with self.fusion.lock:
-                if reply is None:
-                    stage.forward_answer(wire_id, vision_system, None)
-                else:
-                    stage.forward_answer(wire_id, vision_system, reply.status, reply.message)
-            self.fusion.wake.set()
-
-        try:
-            accepted, skipped = self.dispatcher.submit(
-                names, Outgoing(forward, settled, fusion_uri), wake=False, caller=_caller(request)
-            )
-        except (Busy, OverShare):
-            with self.fusion.lock:
-                stage.cancel_round(wire_id)
-            raise
-        if not accepted:
-            with self.fusion.lock:
-                stage.cancel_round(wire_id)
-            raise answers.busy_everywhere(
-                len(names),
-                algorithm,
-                self.settings.max_pending_per_vision_system,
-                self.settings.busy_retry_after,
-            )
-        with self.fusion.lock:
-            for vision_system in skipped:
-                stage.forward_answer(wire_id, vision_system, None)
-        self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
-        return self._accepted(len(accepted), len(skipped))
-
-    def _submit_delivery(self, callback_service: str, delivery: Delivery) -> bool:
-        """Queue a fused callback for a robot on the forwarding workers; False when there is no room."""
-        try:
-            accepted, _ = self.dispatcher.submit([callback_service], delivery)
-        except Busy:
-            return False
-        return bool(accepted)
-
-    def _fused_watch_refused(self, forward: Forward, answer) -> None:
-        """A vision system refused a fused watch's forward: the robot hears of it in its next callback."""
-        _, wire_id = forward.watch.forwarded()
-        with self.fusion.lock:
-            self.fusion.stage.watch_refused(wire_id, forward.vision_system, answer.status, answer.message)
 
     def _accepted(self, forwarded: int, skipped: int) -> DetectObjectBoundaryResponse:
         """The acknowledgement of a request sent to ``forwarded`` vision systems (``skipped`` busy),
@@ -487,103 +405,6 @@ class DrvsServer:
         )
 
     # -- watches -----------------------------------------------------------------------------
-    def handle_watch(self, request) -> WatchObjectBoundaryResponse:
-        self.node.counters.add(watch_requests=1)
-        return self._answer('watch call', request, self._watch, self._refuse_watch)
-
-    @staticmethod
-    def _refuse_watch(refusal: Refusal) -> WatchObjectBoundaryResponse:
-        return refusal_response(WatchObjectBoundaryResponse, refusal)
-
-    def _watch(self, request) -> WatchObjectBoundaryResponse:
-        limited = self._rate_limit(request)
-        if limited:
-            raise limited
-        caller = _caller(request)
-        try:
-            stands = watch_terms(request.request_id, request.period, request.duration)
-        except ValidationError as error:
-            raise Refusal(INVALID, str(error)) from None
-        algorithm, region = self._request_fields(request) if stands else ('', (0.0, 0.0, 0.0, 0.0))
-        key = (caller, request.request_id)
-        forward_as = None
-        if stands:
-            self._check_callback(request)
-            with self._watch_lock:
-                standing = self.watches.get((caller, request.request_id))
-            if standing is None or standing.algorithm_name != algorithm:
-                # A renewal with the same algorithm is never UNSUPPORTED: the watch stands for the
-                # vision systems that will come, as it did when the last one running it left.
-                check_supported(self.registry.available_algorithms(), algorithm)
-        with self._watch_lock:
-            # The fusion stage's watch and the table's change together (the watch loop keeps the
-            # stage's watches that the table has, under both locks).
-            with self.fusion.lock:
-                if stands and request.fused:
-                    period = max(request.period, self.settings.min_watch_period)
-                    wire_id = self.fusion.stage.set_watch(
-                        key, request.algorithm, region, request.callback_service, period, request.changes_only
-                    )
-                    forward_as = (self.fusion.service_name, wire_id)
-                else:
-                    self.fusion.stage.drop_watch(key)
-            try:
-                answer = self.watches.request(
-                    caller,
-                    request.request_id,
-                    request.algorithm,
-                    algorithm,
-                    region,
-                    request.callback_service,
-                    request.period,
-                    request.duration,
-                    request.changes_only,
-                    forward_as,
-                )
-            except ValidationError as error:
-                raise Refusal(INVALID, str(error)) from None
-            self._submit(answer.forwards)
-            serving = len(self.watches.serving((caller, request.request_id)))
-            standing = self.watches.get((caller, request.request_id))
-        if self.sharing is not None:
-            if standing is not None:
-                self.sharing.save(standing)
-            else:
-                self.sharing.drop(caller, request.request_id)
-        return WatchObjectBoundaryResponse(
-            accepted=True,
-            status=ACCEPTED,
-            message=answers.watch_answer(answer.change, request.request_id, serving),
-            vision_systems=serving,
-            period=answer.period,
-            duration=answer.duration,
-        )
-
-    def _submit(self, forwards: list[Forward]) -> None:
-        """Queue watch forwards in order (the caller holds ``_watch_lock``); one that finds no room
-        is left to the watch table (:meth:`WatchTable.undelivered`)."""
-        for forward in forwards:
-            one_shot = forward.kind == ONE_SHOT
-            destination = forward.vision_system if one_shot else watch_service_of(forward.vision_system)
-            try:
-                accepted, _ = self.dispatcher.submit([destination], forward)
-            except Busy:
-                accepted = []
-            if not accepted:
-                rospy.logdebug(
-                    '%s of watch %r to %s not sent: too many forwards pending',
-                    forward.kind,
-                    forward.watch.request_id,
-                    destination,
-                )
-                self.watches.undelivered(forward)
-
-    def _undelivered(self, forward: Forward) -> None:
-        """A watch forward that failed (the forwarder's ``on_undelivered``): sent again later."""
-        with self._watch_lock:
-            self.watches.undelivered(forward)
-        self._watch_wake.set()
-
     # -- background loops --------------------------------------------------------------------
     def _expire(self) -> None:
         version = self.registry.version
@@ -605,20 +426,6 @@ class DrvsServer:
             self._dirty = True
             self._changed.notify()
         self._watch_wake.set()
-
-    def _watch_loop(self) -> None:
-        """Follow the registry's changes, expire watches, send one-shots when due (ROS time)."""
-        while not self.node.stopped:
-            self._watch_wake.clear()
-            with self._watch_lock:
-                self._submit(self.watches.sync())
-                due = self.watches.next_due()
-                fused = {w.key: self.watches.serving(w.key) for w in self.watches.standing() if w.forward_as}
-                with self.fusion.lock:
-                    self.fusion.stage.keep_watches(fused)
-            self.forwarder.watch_clients.expire()
-            wait = WATCH_WAIT if due is None else min(max(due - rospy.get_time(), 0.001), WATCH_WAIT)
-            self._watch_wake.wait(wait)
 
     def stats_msg(self) -> ServerStats | None:
         """The counters (drvs/ServerStats, stamped with ROS time) if they changed since the last call."""

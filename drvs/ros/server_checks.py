@@ -20,7 +20,12 @@ from drvs.ros.service_client import (
 from drvs.server.callback_check import CallbackCheck
 from drvs.srv import CallbackCoordinates, DetectObjectBoundary, WatchObjectBoundary
 
-__all__ = ['MasterChecks']
+__all__ = ['MasterChecks', 'caller_of']
+
+
+def caller_of(request) -> str:
+    """The caller id a service request came with (its connection header), '' without one."""
+    return request._connection_header.get('callerid', '')
 
 
 class MasterChecks:

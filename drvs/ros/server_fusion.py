@@ -23,12 +23,23 @@ from drvs.msg import DetectedObject, TrackedObjects
 from drvs.ros.conversions import bounds_of, box_to_msg, points_to_polygon, polygon_to_points
 from drvs.ros.markers import algorithm_colour, outline_marker, text_marker
 from drvs.ros.messages import header
+from drvs.ros.server_checks import caller_of
+from drvs.ros.server_forwarding import Outgoing
 from drvs.ros.service_client import ServiceCallError, ServiceClient
+from drvs.server import answers
+from drvs.server.dispatch import Busy, OverShare
 from drvs.server.fusion import Delivery, FusionStage
 from drvs.server.tracker import Observation, TrackView
-from drvs.srv import CallbackCoordinates, CallbackCoordinatesRequest, CallbackCoordinatesResponse
+from drvs.server.watch_table import Forward
+from drvs.srv import (
+    CallbackCoordinates,
+    CallbackCoordinatesRequest,
+    CallbackCoordinatesResponse,
+    DetectObjectBoundaryRequest,
+    DetectObjectBoundaryResponse,
+)
 
-__all__ = ['FusionGlue', 'detected_object']
+__all__ = ['FusedRequests', 'FusionGlue', 'detected_object']
 
 LONGEST_WAIT = 0.5
 """Wall-clock seconds the delivery loop waits at most between two looks at the (ROS) clock."""
@@ -239,3 +250,84 @@ def _arrow(marker_id: int, position, velocity, colour, stamp) -> Marker:
     x, y = position
     marker.points = [Point(x, y, 0.05), Point(x + velocity[0], y + velocity[1], 0.05)]
     return marker
+
+
+class FusedRequests:
+    """The fused one-shot requests of :class:`~drvs.ros.server.DrvsServer` (mixed into it: they use its
+    registry, dispatcher, checks and :class:`FusionGlue`): a round of the fusion stage, forwarded
+    with the stage's callback service, and the deliveries and refusals the stage hears of."""
+
+    def _detect_fused(
+        self, request, algorithm: str, region, names: list[str]
+    ) -> DetectObjectBoundaryResponse:
+        """A fused request: a round of the fusion stage, forwarded with its callback service and id;
+        the robot is called back once, by the fusion stage (docs/interface.md, "Fused mode")."""
+        answer = self._sent_to_none(region, algorithm) if not names else None  # may refuse UNSUPPORTED
+        stage = self.fusion.stage
+        with self.fusion.lock:
+            wire_id = stage.open_round(
+                caller_of(request),
+                request.request_id,
+                request.algorithm,
+                region,
+                request.callback_service,
+                names,
+            )
+        self.node.counters.add(fused_requests=1)
+        if answer is not None:
+            self.fusion.wake.set()  # answered at once: no vision system covers the region
+            return answer
+        forward = DetectObjectBoundaryRequest(
+            algorithm=request.algorithm,
+            region_of_interest=request.region_of_interest,
+            callback_service=self.fusion.service_name,
+            request_id=wire_id,
+            fused=True,  # the vision system calls back even when it finds nothing
+        )
+        # A vision system at another site calls our fusion service at its address on our master.
+        fusion_uri = self.checks.callback(self.fusion.service_name) if self._any_remote(names) else ''
+
+        def settled(vision_system: str, reply) -> None:
+            with self.fusion.lock:
+                if reply is None:
+                    stage.forward_answer(wire_id, vision_system, None)
+                else:
+                    stage.forward_answer(wire_id, vision_system, reply.status, reply.message)
+            self.fusion.wake.set()
+
+        try:
+            accepted, skipped = self.dispatcher.submit(
+                names, Outgoing(forward, settled, fusion_uri), wake=False, caller=caller_of(request)
+            )
+        except (Busy, OverShare):
+            with self.fusion.lock:
+                stage.cancel_round(wire_id)
+            raise
+        if not accepted:
+            with self.fusion.lock:
+                stage.cancel_round(wire_id)
+            raise answers.busy_everywhere(
+                len(names),
+                algorithm,
+                self.settings.max_pending_per_vision_system,
+                self.settings.busy_retry_after,
+            )
+        with self.fusion.lock:
+            for vision_system in skipped:
+                stage.forward_answer(wire_id, vision_system, None)
+        self._held.forwards = getattr(self._held, 'forwards', 0) + len(accepted)
+        return self._accepted(len(accepted), len(skipped))
+
+    def _submit_delivery(self, callback_service: str, delivery: Delivery) -> bool:
+        """Queue a fused callback for a robot on the forwarding workers; False when there is no room."""
+        try:
+            accepted, _ = self.dispatcher.submit([callback_service], delivery)
+        except Busy:
+            return False
+        return bool(accepted)
+
+    def _fused_watch_refused(self, forward: Forward, answer) -> None:
+        """A vision system refused a fused watch's forward: the robot hears of it in its next callback."""
+        _, wire_id = forward.watch.forwarded()
+        with self.fusion.lock:
+            self.fusion.stage.watch_refused(wire_id, forward.vision_system, answer.status, answer.message)

@@ -37,21 +37,21 @@ from drvs.ros.markers import markers_topic
 from drvs.ros.messages import STATS_COUNTERS, stats_to_msg
 from drvs.ros.node import NodeScaffold, debug_logged, internal_error, refusal_response
 from drvs.ros.service_client import ServiceCallError, ServiceClient
+from drvs.ros.vision_watches import VisionWatches
 from drvs.srv import (
     DetectObjectBoundary,
     DetectObjectBoundaryResponse,
     RegisterVisionService,
     RegisterVisionServiceRequest,
     WatchObjectBoundary,
-    WatchObjectBoundaryResponse,
 )
 from drvs.vision.detections import FrameDetections, Job
 from drvs.vision.frame import Frame
 from drvs.vision.frame_problems import FrameProblems, depth_problem
 from drvs.vision.params import VisionSystemParams
-from drvs.vision.pipeline import draw_detections, in_region, on_floor
+from drvs.vision.pipeline import draw_detections, in_region
 from drvs.vision.registration import RENEW, UNREGISTER, Attempt, Registration
-from drvs.vision.watch_runner import Terms, WatchRunner, parse_watch
+from drvs.vision.watch_runner import WatchRunner
 
 __all__ = ['VisionSystemNode']
 
@@ -65,10 +65,6 @@ STATS_PERIOD = 0.5
 """Least wall-clock seconds between two ``~stats`` messages: a busy camera counts hundreds of
 events a second, and every subscriber (the scenario recorder) would receive each one."""
 
-WATCH_POLL = 0.05
-"""Longest wall-clock sleep of the watch loop: it looks again at the time of the next due watch
-(ROS time, which may run slower or faster than the wall under ``/use_sim_time``) and for new watches."""
-
 REGISTRATION_PERIOD = 0.05
 """Wall-clock seconds between two looks at the field of view (:class:`Registration` decides)."""
 
@@ -76,7 +72,7 @@ ACCEPTED_REPLY = DetectObjectBoundaryResponse(accepted=True, status=ACCEPTED, me
 """The answer to every accepted request (rospy only serialises it: one is shared)."""
 
 
-class VisionSystemNode:
+class VisionSystemNode(VisionWatches):
     """One camera serving DetectObjectBoundary; :meth:`start` does the work, :meth:`stop` undoes it."""
 
     def __init__(self, params: VisionSystemParams):
@@ -236,10 +232,6 @@ class VisionSystemNode:
         self._log_refusal('request', request.request_id, refusal)
         return refusal_response(DetectObjectBoundaryResponse, refusal, vision_systems=0)
 
-    def _refuse_watch(self, request, refusal: Refusal) -> WatchObjectBoundaryResponse:
-        self._log_refusal('watch', request.request_id, refusal)
-        return refusal_response(WatchObjectBoundaryResponse, refusal)
-
     def _log_refusal(self, what: str, request_id: str, refusal: Refusal) -> None:
         """One line per refusal, at most one a second per kind (a flood of BUSY says it once)."""
         status = status_name(refusal.status)
@@ -256,62 +248,6 @@ class VisionSystemNode:
 
     def _internal_error(self, what: str, error: Exception) -> Refusal:
         return internal_error(f'vision system {rospy.get_name()}', what, error, self.params.retry_period)
-
-    def _handle_watch(self, request) -> WatchObjectBoundaryResponse:
-        try:
-            return self._watch(request)
-        except Exception as error:  # a bug: answer with a status, never rospy's bare error reply
-            return self._refuse_watch(request, self._internal_error('a watch', error))
-
-    def _watch(self, request) -> WatchObjectBoundaryResponse:
-        now = rospy.get_time()
-        try:
-            terms = parse_watch(
-                request.algorithm,
-                msg_to_box(request.region_of_interest),
-                request.callback_service,
-                request.request_id,
-                request.period,
-                request.duration,
-                request.changes_only,
-                self.algorithms,
-                request.fused,
-                request.callback_uri,
-            )
-            if terms is None:
-                key = (request.callback_service, request.request_id, request.callback_uri)
-                cancelled = self.watches.cancel(key)
-                self._count(watch_calls=1)
-                self._note_watches()
-                if cancelled:
-                    rospy.loginfo('%s: watch %r cancelled', rospy.get_name(), request.request_id)
-                return WatchObjectBoundaryResponse(accepted=True, status=ACCEPTED)
-            if terms.algorithm.algorithm.streaming:  # as for a request: foreground learns while refused
-                self._streaming_until = max(self._streaming_until, now + self.params.motion_window)
-            problem = self.source.unavailable() or self._frame_problem(terms.algorithm, now)
-            if problem:
-                raise Refusal(UNAVAILABLE, problem, self.params.retry_period)
-            grant = self.watches.stand(terms, float(request.duration), now)
-        except (AlgorithmError, ValidationError) as error:
-            return self._refuse_watch(request, Refusal(INVALID, str(error)))
-        except Refusal as refusal:
-            return self._refuse_watch(request, refusal)
-        self._count(watch_calls=1)
-        self._note_watches()
-        if grant.new:
-            self._count_algorithm(request.algorithm)
-            rospy.loginfo(
-                '%s: watch %r (%s) every %g s for %g s%s',
-                rospy.get_name(),
-                request.request_id,
-                request.algorithm,
-                grant.period,
-                grant.duration,
-                ', changes only' if terms.changes_only else '',
-            )
-        return WatchObjectBoundaryResponse(
-            accepted=True, status=ACCEPTED, vision_systems=1, period=grant.period, duration=grant.duration
-        )
 
     def _work(self) -> None:
         while not self.node.stopped:
@@ -365,56 +301,6 @@ class VisionSystemNode:
             return
         for algorithm in self._streaming:
             algorithm.observe(frame)
-
-    def _watch_loop(self) -> None:
-        """Sleep until a watch is due, then evaluate every due watch on one frame."""
-        while not self.node.wait(self._until_next_watch()):
-            now = rospy.get_time()
-            due = self.watches.due(now)
-            self._note_watches()  # due() drops the expired ones
-            if due:
-                self._evaluate_watches(due, now)
-
-    def _until_next_watch(self) -> float:
-        """Wall seconds to sleep: until the next watch is due (read as ROS seconds), at most WATCH_POLL."""
-        next_due = self.watches.next_due()
-        if next_due is None:
-            return WATCH_POLL
-        return min(max(next_due - rospy.get_time(), 0.0), WATCH_POLL)
-
-    def _evaluate_watches(self, due: list[Terms], now: float) -> None:
-        try:
-            frame, _ = self.source.frame(now)
-        except FrameUnavailable as error:
-            self._count(no_frame=1)
-            rospy.logwarn_throttle(5.0, '%s: %d watch(es) skipped: %s', rospy.get_name(), len(due), error)
-            return
-        streaming = {terms.algorithm.algorithm for terms in due if terms.algorithm.algorithm.streaming}
-        if streaming:  # as for a request: the model sees the frame it judges, and the stream goes on
-            self._streaming_until = max(self._streaming_until, now + self.params.motion_window)
-        for algorithm in streaming:
-            algorithm.observe(frame)
-        detected: dict[str, list] = {}  # algorithm text -> its objects on this frame: detect once
-        for terms in due:
-            try:
-                if terms.algorithm.text not in detected:
-                    detected[terms.algorithm.text] = on_floor(frame, terms.algorithm)
-                    self.frame_problems.clear(terms.algorithm.name)
-                found = in_region(detected[terms.algorithm.text], terms.region)
-            except FrameProblem as error:
-                self._note_frame_problem(terms.algorithm, error, f'watch {terms.request_id!r}')
-                continue
-            except Exception:  # one watch that fails must not stop the others
-                rospy.logerr(
-                    '%s: watch %r failed:\n%s', rospy.get_name(), terms.request_id, traceback.format_exc()
-                )
-                continue
-            self._count(watch_evaluations=1)
-            objects = self.watches.evaluate(terms, found)
-            if objects is not None and not self.callbacks.send(
-                terms, self.service_name, frame.stamp, objects
-            ):
-                self.watches.callback_failed(terms)
 
     def _frame_problem(self, algorithm: Parsed, now: float) -> str | None:
         return self.frame_problems.why(algorithm, self.source.latest, lambda: self.source.depth_problem, now)
