@@ -31,6 +31,7 @@ from drvs.common.validation import ValidationError, global_ros_name
 __all__ = [
     'RETURN_AFTER',
     'RETURN_AFTER_MAX',
+    'Heard',
     'Move',
     'ServerList',
     'moves_on',
@@ -118,6 +119,16 @@ class Move:
 
     server: str
     line: str
+
+
+@dataclass(frozen=True)
+class Heard:
+    """What a client makes of a call's end (:meth:`ServerList.heard`): a ``line`` to log ('' for
+    nothing; at warning level when ``warning``), and whether it ``moved`` to another server."""
+
+    line: str = ''
+    warning: bool = False
+    moved: bool = False
 
 
 class ServerList:
@@ -224,3 +235,11 @@ class ServerList:
             return f'DRVS server {server} answers again; asking it from now on'
         quiet, self._failures = self._failures >= len(self.servers), 0
         return f'DRVS server {server} answers again' if quiet and len(self.servers) > 1 else ''
+
+    def heard(self, server: str, status: int | None, why: str) -> Heard:
+        """A call to ``server`` ended: with no answer (``status`` None, ``why`` says how) or with an
+        answer of ``status`` (``why``: its message). ``UNAVAILABLE`` or no answer moves on."""
+        if moves_on(status):
+            move = self.fail(server, why if status is None else f'UNAVAILABLE: {why}')
+            return Heard() if move is None else Heard(move.line, warning=True, moved=True)
+        return Heard(self.answered(server))

@@ -19,7 +19,6 @@ from nav_msgs.msg import OccupancyGrid, Path
 from drvs.common.failover import ServerList
 from drvs.common.guard import RESTART, SHUTDOWN
 from drvs.common.health import Health, robot_health
-from drvs.common.status import UNAVAILABLE
 from drvs.common.status import name as status_name
 from drvs.msg import RobotStatus
 from drvs.robot.assembly import assemble
@@ -256,7 +255,7 @@ class BlindRobot:
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
-                self._server_failed(server, str(error))
+                self._heard(server, None, str(error))
             self.node.log_throttled(
                 'call failed',
                 rospy.logwarn,
@@ -268,7 +267,7 @@ class BlindRobot:
             return
         with self._requests:
             outcome = self.schedule.on_response(role, response.status, response.retry_after, response.message)
-            self._server_answered(server, response)
+            self._heard(server, response.status, response.message)
         self._answered(role, f'request {request_id}', outcome, response, request.region_of_interest, sent)
 
     def _send_watch(self, call: WatchCall) -> None:
@@ -296,7 +295,7 @@ class BlindRobot:
         except ServiceCallError as error:
             with self._requests:
                 outcome = self.schedule.on_failure(role)
-                self._server_failed(server, str(error))
+                self._heard(server, None, str(error))
             if call.duration:
                 self.node.log_throttled(
                     'call failed',
@@ -314,7 +313,7 @@ class BlindRobot:
             outcome = self.schedule.on_response(
                 role, response.status, response.duration, response.retry_after, response.message
             )
-            self._server_answered(server, response)
+            self._heard(server, response.status, response.message)
         if call.duration:
             self._answered(
                 role, f'watch {request_id} ({call.reason})', outcome, response, call.region_of_interest, sent
@@ -328,25 +327,15 @@ class BlindRobot:
             self._clients[server] = ServiceClient(server, self._service_class, self.params.request_timeout)
         return server
 
-    def _server_failed(self, server: str, why: str) -> None:
-        """``server`` gave no answer or ``UNAVAILABLE`` (the caller holds ``_requests``): the next
-        calls go to the next server, and the watches standing are renewed there at once."""
-        move = self.servers.fail(server, why)
-        if move is None:
-            return
-        if move.line:
-            rospy.logwarn('blind robot: %s', move.line)
-        if self.watching:
+    def _heard(self, server: str, status: int | None, why: str) -> None:
+        """A call to ``server`` ended (no answer: ``status`` None; the caller holds ``_requests``): on
+        ``UNAVAILABLE`` or no answer the next calls go to the next server, and the watches standing
+        are renewed there at once."""
+        heard = self.servers.heard(server, status, why)
+        if heard.line:
+            (rospy.logwarn if heard.warning else rospy.loginfo)('blind robot: %s', heard.line)
+        if heard.moved and self.watching:
             self.schedule.reissue()
-
-    def _server_answered(self, server: str, response) -> None:
-        """(The caller holds ``_requests``.)"""
-        if response.status == UNAVAILABLE:
-            self._server_failed(server, f'UNAVAILABLE: {response.message}')
-            return
-        line = self.servers.answered(server)
-        if line:
-            rospy.loginfo('blind robot: %s', line)
 
     def _answered(self, role: str, what: str, outcome, response, region, sent: float) -> None:
         """Act on the outcome of an answered call over ``region``, sent at ``sent`` (``what``

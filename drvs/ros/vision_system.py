@@ -343,12 +343,9 @@ class VisionSystemNode(VisionWatches):
         except ServiceCallError as error:
             rospy.logwarn_throttle(10.0, '%s: waiting for the DRVS server (%s)', rospy.get_name(), error)
             self.registration.unanswered(attempt, str(error))
-            self._server_failed(server, str(error))
+            self._heard(server, None, str(error))
             return
-        if response.status == UNAVAILABLE:
-            self._server_failed(server, f'UNAVAILABLE: {response.message}')
-        else:
-            self._server_answered(server)
+        self._heard(server, response.status, response.message)
         if response.status != ACCEPTED:
             self.registration.refused(attempt, response.status, response.message, response.retry_after)
             if is_temporary(response.status):
@@ -379,17 +376,13 @@ class VisionSystemNode(VisionWatches):
             )
         self._count(registrations=1)
 
-    def _server_failed(self, server: str, why: str) -> None:
-        """``server`` gave no answer or ``UNAVAILABLE``: the next registration goes to the next server
-        (which registers this vision system anew if it does not know it: every call carries it all)."""
-        move = self.servers.fail(server, why)
-        if move is not None and move.line:
-            rospy.logwarn('%s: %s', rospy.get_name(), move.line)
-
-    def _server_answered(self, server: str) -> None:
-        line = self.servers.answered(server)
-        if line:
-            rospy.loginfo('%s: %s', rospy.get_name(), line)
+    def _heard(self, server: str, status: int | None, why: str) -> None:
+        """A registration call to ``server`` ended (no answer: ``status`` None): on ``UNAVAILABLE`` or no
+        answer the next one goes to the next server (which registers this vision system anew if it
+        does not know it: every call carries it all)."""
+        heard = self.servers.heard(server, status, why)
+        if heard.line:
+            (rospy.logwarn if heard.warning else rospy.loginfo)('%s: %s', rospy.get_name(), heard.line)
 
     # -- introspection -------------------------------------------------------------------------
     def health(self) -> Health:

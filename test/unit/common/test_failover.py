@@ -5,7 +5,7 @@ import doctest
 import pytest
 
 import drvs.common.failover
-from drvs.common.failover import Move, ServerList, moves_on, namespace_of, namespaces, service_names
+from drvs.common.failover import Heard, Move, ServerList, moves_on, namespace_of, namespaces, service_names
 from drvs.common.settings import ParamError
 from drvs.common.status import BUSY, RATE_LIMITED, UNAVAILABLE
 from drvs.robot.params import RobotParams
@@ -167,3 +167,17 @@ def test_a_client_on_its_first_server_never_returns_and_a_round_back_to_it_is_no
     assert servers.returns == 0
     with pytest.raises(ValueError, match='server_return: must be positive'):
         ServerList(['/a'], return_after=0.0)
+
+
+def test_what_a_client_makes_of_a_calls_end():
+    servers = ServerList(['/a', '/b'])
+    assert servers.heard('/a', BUSY, 'busy') == Heard()  # a load refusal: retried at the same server
+    moved = servers.heard('/a', UNAVAILABLE, 'no database')
+    assert moved == Heard(
+        'DRVS server /a did not serve (UNAVAILABLE: no database); asking /b from now on',
+        warning=True,
+        moved=True,
+    )
+    assert servers.heard('/b', None, 'timed out after 2 s').moved and servers.current == '/a'
+    assert servers.heard('/a', 0, '') == Heard('DRVS server /a answers again')
+    assert ServerList(['/a']).heard('/a', None, 'refused') == Heard()  # nowhere else to go
