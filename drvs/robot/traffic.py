@@ -319,9 +319,9 @@ def clear_of_people(
     :data:`PERSON_MARGIN`. The first clear one of: ``planned``, half of it, standing still,
     stepping aside (square to the nearest person's way, away from the line they walk along) and
     ``back`` (the way the robot came, reversed: floor it has just been on), the last two where
-    ``free`` holds the point they reach in a second; with none clear, the one that comes least close
-    from :data:`SETTLE` seconds on (when it is already too close, the way out). So the robot waits
-    before a person's way, and steps out of it rather than wait in it. (Backing alone was not
+    ``free`` holds the point they reach in one second or two; with none clear, the one that comes
+    least close from :data:`SETTLE` seconds on (when it is already too close, the way out). So the
+    robot waits before a person's way, and steps out of it rather than wait in it. (Backing alone was not
     enough: a robot that came from where the person was coming from stood in their way, backing
     towards them being worse, until it was walked into.)
 
@@ -347,7 +347,13 @@ def clear_of_people(
     step = math.hypot(*back) or math.hypot(*planned)
     aside = _out_of_the_way(position, moving, step)
     for way in (aside, back):
-        if way is not None and math.hypot(*way) > 0 and free((position[0] + way[0], position[1] + way[1])):
+        # Where it gets to in one second or two: out of a person's way can take more than one (the
+        # floor the person sweeps, and the margin round it, are not free in the map either).
+        if (
+            way is not None
+            and math.hypot(*way) > 0
+            and any(free((position[0] + way[0] * t, position[1] + way[1] * t)) for t in (1.0, 2.0))
+        ):
             candidates.append(way)
     best: tuple[float, Point, Mover | None] | None = None
     for velocity in candidates:

@@ -7,7 +7,7 @@ import pytest
 from shapely.geometry import Point, box
 
 import drvs.robot.traffic
-from drvs.robot.traffic import Mover, MoverTracker, Yielding, closest_approach, swept
+from drvs.robot.traffic import Mover, MoverTracker, Yielding, clear_of_people, closest_approach, swept
 
 
 def square(x, y, half=0.15):
@@ -148,3 +148,16 @@ def test_two_robots_crossing_at_the_same_time_keep_apart_and_both_arrive():
 
 def test_doctests():
     assert doctest.testmod(drvs.robot.traffic).failed == 0
+
+
+def test_a_robot_in_a_persons_way_steps_out_even_when_the_first_second_is_still_in_their_margin():
+    walker = Mover(box(0.8, -0.2, 1.2, 0.2), (-0.35, 0.0))  # coming west along y = 0
+    margin = 0.8  # the person's way and the margin round it, all y < 0.8: not free in the map
+
+    def free(point):
+        return abs(point[1]) >= margin
+
+    velocity, person = clear_of_people((0.0, 0.1), (0.0, 0.0), [walker], 0.2, 2.0, (0.0, -0.5), free)
+    assert velocity == (0.0, 0.5) and person is walker  # aside, north: free two seconds on
+    stuck, _ = clear_of_people((0.0, 0.1), (0.0, 0.0), [walker], 0.2, 2.0, (0.0, -0.5), lambda p: False)
+    assert stuck != (0.0, 0.5)  # nowhere free to go: no stepping aside
