@@ -87,6 +87,7 @@ class Dispatcher:
         self._queues: dict[Hashable, deque] = {}
         self._in_flight: dict[Hashable, Hashable | None] = {}  # destination -> its item's caller
         self._held: dict[tuple[Hashable, Hashable], int] = {}  # (destination, caller) -> queued + in flight
+        self._holders: dict[Hashable, int] = {}  # destination -> callers holding some of its places
         self._ready: deque = deque()  # destinations with queued items and nothing in flight
         self._pending = 0
         self._threads: list[threading.Thread] = []
@@ -167,7 +168,10 @@ class Dispatcher:
                 queue = self._queues.setdefault(destination, deque())
                 queue.append((caller, item))
                 if caller is not None:
-                    self._held[destination, caller] = self._held.get((destination, caller), 0) + 1
+                    held = self._held.get((destination, caller), 0)
+                    if held == 0:
+                        self._holders[destination] = self._holders.get(destination, 0) + 1
+                    self._held[destination, caller] = held + 1
                 if len(queue) == 1 and destination not in self._in_flight:
                     self._ready.append(destination)
             self._pending += len(accepted)
@@ -177,8 +181,8 @@ class Dispatcher:
 
     def _callers(self, destination: Hashable, caller: Hashable) -> int:
         """The callers holding places of ``destination``, ``caller`` counted whether or not it holds one."""
-        others = {c for (d, c), n in self._held.items() if d == destination and n > 0 and c != caller}
-        return len(others) + 1
+        holders = self._holders.get(destination, 0)
+        return holders if (destination, caller) in self._held else holders + 1
 
     def _over_share(self, destination: Hashable, caller: Hashable) -> tuple[int, int] | None:
         """(held, share) when ``caller`` holds its fair share of ``destination`` already, else None."""
@@ -194,8 +198,12 @@ class Dispatcher:
         left = self._held.get(key, 0) - 1
         if left > 0:
             self._held[key] = left
-        else:
-            self._held.pop(key, None)
+        elif self._held.pop(key, None) is not None:
+            holders = self._holders[destination] - 1
+            if holders:
+                self._holders[destination] = holders
+            else:
+                del self._holders[destination]
 
     def holding(self, destination: Hashable, caller: Hashable) -> int:
         """How many of ``destination``'s places ``caller`` holds now (queued and in flight)."""
