@@ -11,6 +11,12 @@ BACKENDS = ('memory', 'postgresql')
 
 
 @pytest.fixture(scope='module')
+def dsn(postgres):
+    """The DSN of the module's cluster."""
+    return postgres.dsn
+
+
+@pytest.fixture(scope='module')
 def pg_store(postgres):
     """One store (one connection) on the module's cluster; each test empties it."""
     store = PgStore(postgres.dsn)

@@ -17,11 +17,6 @@ def square(x, y, size=1.0):
     return [(x, y), (x + size, y), (x + size, y + size), (x, y + size)]
 
 
-@pytest.fixture(scope='module')
-def dsn(postgres):
-    return postgres.dsn
-
-
 @pytest.fixture
 def clock():
     return ManualClock(1000.0)

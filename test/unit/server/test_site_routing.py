@@ -6,6 +6,7 @@ import doctest
 import psycopg
 import pytest
 from psycopg import conninfo
+from test_shared_registry import Client
 
 import drvs.server.sites
 from drvs.common.status import INVALID, UNAVAILABLE, Refusal
@@ -55,19 +56,6 @@ def test_a_caller_may_not_choose_the_callback_uri():
         "callback_uri: 'rosrpc://elsewhere:1'; leave it empty in a call to the DRVS server "
         '(it fills it for vision systems at other sites)'
     )
-
-
-class Client:
-    def __init__(self, name, uri=None):
-        self.name, self.uri, self.closed = name, uri, False
-
-    def close(self):
-        self.closed = True
-
-
-@pytest.fixture(scope='module')
-def dsn(postgres):
-    return postgres.dsn
 
 
 @pytest.fixture
