@@ -14,14 +14,12 @@ from __future__ import annotations
 import socket
 import struct
 import threading
-import time
 import xmlrpc.client
 
-import rosgraph.network
 import rospy
 
 from drvs.ros.node import NodeScaffold
-from drvs.ros.tcpros import TimeoutTransport
+from drvs.ros.tcpros import Deadline, ServiceCallError, TimeoutTransport, handshake
 from drvs.sim.params import SiteLinkSettings
 
 __all__ = ['SiteLinkNode', 'raw_message_class']
@@ -162,8 +160,8 @@ class SiteLinkNode:
         except OSError as error:
             raise LinkBroken(f'{topic} from {name}: cannot connect to {host}:{port}: {error}') from None
         try:
-            sock.settimeout(READ_PERIOD)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setblocking(False)  # the handshake waits with the service client's own steps
             fields = {
                 'callerid': self._caller_id,
                 'topic': topic,
@@ -171,18 +169,11 @@ class SiteLinkNode:
                 'type': '*',
                 'tcp_nodelay': '1',
             }
-            sock.sendall(rosgraph.network.encode_ros_handshake_header(fields))
-            deadline = time.monotonic() + timeout
-            (size,) = struct.unpack('<I', self._read(sock, 4, topic, name, deadline))
-            if size > 1 << 20:
-                raise LinkBroken(f'{topic} from {name}: a handshake header of {size} bytes')
-            body = self._read(sock, size, topic, name, deadline)
             try:
-                header = rosgraph.network.decode_ros_handshake_header(struct.pack('<I', size) + body)
-            except (rosgraph.network.ROSHandshakeException, UnicodeDecodeError, struct.error) as error:
-                raise LinkBroken(f'{topic} from {name}: invalid handshake header: {error}') from None
-            if 'error' in header:
-                raise LinkBroken(f'{topic} from {name}: the publisher refused: {header["error"]}')
+                header = handshake(sock, fields, Deadline(f'{topic} from {name}', timeout))
+            except ServiceCallError as error:
+                raise LinkBroken(str(error).removeprefix('service ')) from None
+            sock.settimeout(READ_PERIOD)  # then the messages: read in steps that look at the stop
             self._advertise(topic, header)
         except (LinkBroken, OSError) as error:
             sock.close()
@@ -214,11 +205,8 @@ class SiteLinkNode:
                     'first publisher\'s (its md5sum too): not copied'
                 )
 
-    def _read(
-        self, sock: socket.socket, count: int, topic: str, name: str, deadline: float | None = None
-    ) -> bytes:
-        """Exactly ``count`` bytes; waits until ``deadline`` (``time.monotonic()``; None: as long as
-        it takes) while the node is not stopping."""
+    def _read(self, sock: socket.socket, count: int, topic: str, name: str) -> bytes:
+        """Exactly ``count`` bytes, as long as it takes while the node is not stopping."""
         data = bytearray()
         while len(data) < count:
             try:
@@ -226,8 +214,6 @@ class SiteLinkNode:
             except TimeoutError:
                 if self.node.stopped:
                     raise LinkBroken(f'{topic} from {name}: stopping') from None
-                if deadline is not None and time.monotonic() >= deadline:
-                    raise LinkBroken(f'{topic} from {name}: no handshake header within the timeout') from None
                 continue
             except OSError as error:
                 raise LinkBroken(f'{topic} from {name}: connection failed: {error}') from None
