@@ -168,6 +168,10 @@ class ServerList:
 
     @property
     def current(self) -> str:
+        """The server in use."""
+        return self.servers[self._index]
+
+    def to_ask(self) -> str:
         """The server to ask now: the one in use, or the first once it is time to try it again."""
         if (
             self._index != 0
@@ -176,11 +180,6 @@ class ServerList:
             and self._clock() - self._left_first >= self._wait
         ):
             self._trying_first, self._index = self._index, 0
-        return self.servers[self._index]
-
-    @property
-    def in_use(self) -> str:
-        """The server in use, without trying the first again (for reports from other threads)."""
         return self.servers[self._index]
 
     def failed(self) -> str:
@@ -207,7 +206,7 @@ class ServerList:
         """``server`` gave ``UNAVAILABLE`` or no answer (``why`` says how): the move to the next
         one, or None when there is no other server or ``server`` is no longer the one in use
         (a call to it that was still out)."""
-        if len(self.servers) == 1 or server != self.servers[self._index]:
+        if len(self.servers) == 1 or server != self.current:
             return None
         if self._trying_first is not None:  # the first still does not serve: back, quietly
             return Move(self.failed(), '')
@@ -226,7 +225,7 @@ class ServerList:
     def answered(self, server: str) -> str:
         """``server`` answered (anything but ``UNAVAILABLE``): what to log ('' unless it ends a
         whole round of failures)."""
-        if server != self.servers[self._index]:
+        if server != self.current:
             return ''
         if self._trying_first is not None:
             self._trying_first, self._failures, self._wait = None, 0, self.return_after

@@ -322,7 +322,7 @@ class BlindRobot:
     def _server(self) -> str:
         """The server to ask now, with a client for it."""
         with self._requests:
-            server = self.servers.current
+            server = self.servers.to_ask()
         if server not in self._clients:
             self._clients[server] = ServiceClient(server, self._service_class, self.params.request_timeout)
         return server
@@ -444,7 +444,7 @@ class BlindRobot:
             fix_age=None if fix is None else max(now - fix.stamp, 0.0),
             fix_timeout=self.params.fix_timeout,
             coverage=covered,
-            server=self.servers.in_use,
+            server=self.servers.current,
             server_moves=self.servers.moves,
         )
 

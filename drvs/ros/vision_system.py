@@ -333,7 +333,7 @@ class VisionSystemNode(VisionWatches):
             algorithms=self.algorithms.names(),
         )
         what = attempt.what
-        server = self.servers.current
+        server = self.servers.to_ask()
         client = self._register_clients.get(server)
         if client is None:
             client = ServiceClient(server, RegisterVisionService, timeout=self.params.register_timeout)
@@ -401,7 +401,7 @@ class VisionSystemNode(VisionWatches):
             callbacks_recent=callbacks.get('attempted', 0),
             registration_status=registration.status,
             registration_error=registration.error,
-            server=self.servers.in_use,
+            server=self.servers.current,
             server_moves=self.servers.moves,
             frame_problems=[
                 *([self.source.pose_problem] if self.source.pose_problem else []),

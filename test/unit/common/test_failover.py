@@ -126,12 +126,12 @@ def test_the_first_server_is_asked_again_after_return_after_and_kept_when_it_ans
     servers = ServerList(['/a', '/b', '/c'], clock=clock, return_after=30.0)
     servers.fail('/a', 'connection refused')
     clock.now += 29.9
-    assert servers.current == '/b'
+    assert servers.to_ask() == '/b'
     clock.now += 0.1
-    assert servers.current == '/a'  # time to try the first again
+    assert servers.to_ask() == '/a'  # time to try the first again
     assert servers.answered('/a') == 'DRVS server /a answers again; asking it from now on'
     clock.now += 1000.0
-    assert (servers.current, servers.returns, servers.moves) == ('/a', 1, 1)
+    assert (servers.to_ask(), servers.returns, servers.moves) == ('/a', 1, 1)
 
 
 def test_a_first_server_still_down_sends_the_client_back_quietly_and_waits_longer_each_time():
@@ -141,29 +141,29 @@ def test_a_first_server_still_down_sends_the_client_back_quietly_and_waits_longe
     servers.fail('/b', 'UNAVAILABLE')  # now on /c: the client came from /c when it tries /a
     tries = []
     for _ in range(7):
-        while servers.current != '/a':
+        while servers.to_ask() != '/a':
             clock.now += 1.0
         tries.append(clock())
         assert servers.fail('/a', 'connection refused') == Move('/c', '')
-        assert servers.current == '/c'
+        assert servers.to_ask() == '/c'
     assert [round(b - a) for a, b in zip(tries, tries[1:], strict=False)] == [20, 40, 80, 160, 300, 300]
     assert servers.returns == 0
     clock.now += 300.0
-    assert servers.current == '/a' and servers.answered('/a').startswith('DRVS server /a answers again')
+    assert servers.to_ask() == '/a' and servers.answered('/a').startswith('DRVS server /a answers again')
     servers.fail('/a', 'refused')
     clock.now += 10.0
-    assert servers.current == '/a'  # the wait starts again from return_after after an answer
+    assert servers.to_ask() == '/a'  # the wait starts again from return_after after an answer
 
 
 def test_a_client_on_its_first_server_never_returns_and_a_round_back_to_it_is_no_return():
     clock = ManualClock()
     servers = ServerList(['/a', '/b'], clock=clock, return_after=5.0)
     clock.now += 100.0
-    assert servers.current == '/a'
+    assert servers.to_ask() == '/a'
     servers.fail('/a', 'refused')
     servers.fail('/b', 'refused')  # a whole round: on /a again, by turn
     clock.now += 100.0
-    assert servers.current == '/a' and servers.answered('/a') == 'DRVS server /a answers again'
+    assert servers.to_ask() == '/a' and servers.answered('/a') == 'DRVS server /a answers again'
     assert servers.returns == 0
     with pytest.raises(ValueError, match='server_return: must be positive'):
         ServerList(['/a'], return_after=0.0)
